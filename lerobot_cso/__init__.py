@@ -1,0 +1,1 @@
+"""lerobot_cso: CSO (Cascaded Skills Optimization) for QueST skill-token policies on LeRobot."""
