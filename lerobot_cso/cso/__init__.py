@@ -1,0 +1,1 @@
+"""CSO post-training: R-SFT and SPO (paper Section 4)."""

@@ -1,0 +1,175 @@
+"""Policy-optimisation objectives of CSO as pure tensor functions (paper Section 4, Eq. 5-9, Appendix E).
+
+Shapes used throughout:
+  rewards          (G, K)                 G groups of K trajectories, each group from one initial state
+  log-probs        (N, D_max, n_tokens)   per-token log-probs of the sampled skill tokens, N trajectories
+                                          padded to D_max decision steps, n_tokens (= 8) tokens per skill
+  decision_mask    (N, D_max) bool        True on real decision steps, False on padding
+  advantages       (N,)                   one advantage per trajectory, broadcast to its skills/tokens
+
+Padded entries may hold any value (RIPT pads with 1.0; NaN is fine too): they are replaced by a zero
+log-ratio before anything else, so they reach neither the loss nor the gradient.
+"""
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import torch
+from torch import Tensor
+
+
+class Granularity(StrEnum):
+    """Unit at which the importance ratio is computed and clipped (paper Table 3, D.6, E.3)."""
+
+    TOKEN = "token"  # GRPO/DAPO-style: one ratio per token
+    SKILL = "skill"  # SPO (Eq. 9): one ratio per skill = the n_tokens tokens of one decision step
+    TRAJECTORY = "trajectory"  # GSPO (Eq. 5): one length-normalised ratio per trajectory
+    RIPT = "ript"  # RIPT-VLA's released code: per-token ratio, symmetric clip 0.2, leave-one-out advantage
+
+
+# Clip bounds (1 - eps_low, 1 + eps_high) on the ratio, per granularity.
+DEFAULT_CLIP: dict[Granularity, tuple[float, float]] = {
+    # DAPO's clip-higher, as the paper's token-level baseline (E.3; best row of Table 9).
+    Granularity.TOKEN: (0.8, 1.28),
+    # Paper E.2 / Table 9 best row; calibrated for the SUM of token log-ratios (`clipped_surrogate_loss`).
+    Granularity.SKILL: (0.93, 1.15),
+    # Paper E.3 (best row of Table 9). E.3 calls this GSPO's "official" range, but the GSPO paper uses
+    # eps_low = 3e-4, eps_high = 4e-4, i.e. (0.9997, 1.0004), which Table 9 lists as a worse setting.
+    Granularity.TRAJECTORY: (0.997, 1.004),
+    # RIPT-VLA config: ppo_clip_range = ppo_clip_high = 0.2.
+    Granularity.RIPT: (0.8, 1.2),
+}
+
+
+def default_clip(granularity: Granularity | str) -> tuple[float, float]:
+    """Default (lower, upper) ratio clip bounds of a granularity."""
+    return DEFAULT_CLIP[Granularity(granularity)]
+
+
+def _as_float_groups(rewards: Tensor) -> Tensor:
+    if rewards.ndim != 2:
+        raise ValueError(f"rewards must have shape (G, K), got {tuple(rewards.shape)}")
+    return rewards if rewards.is_floating_point() else rewards.float()
+
+
+def group_advantages(rewards: Tensor) -> Tensor:
+    """Eq. 8: A(tau) = R(tau) - mean of R over the trajectory's group. (G, K) -> (G, K); no std scaling."""
+    rewards = _as_float_groups(rewards)
+    return rewards - rewards.mean(dim=1, keepdim=True)
+
+
+def leave_one_out_advantages(rewards: Tensor) -> Tensor:
+    """RIPT's RLOO advantage: A_k = R_k - mean_{j != k} R_j. (G, K) -> (G, K); needs K >= 2.
+
+    Equals K / (K - 1) times the Eq. 8 advantage of the same group.
+    """
+    rewards = _as_float_groups(rewards)
+    k = rewards.shape[1]
+    if k < 2:
+        raise ValueError("leave-one-out advantages need at least 2 trajectories per group")
+    return rewards - (rewards.sum(dim=1, keepdim=True) - rewards) / (k - 1)
+
+
+def advantages_for(granularity: Granularity | str, rewards: Tensor) -> Tensor:
+    """The advantage estimator each granularity is paired with: leave-one-out for `ript`, Eq. 8 otherwise."""
+    if Granularity(granularity) is Granularity.RIPT:
+        return leave_one_out_advantages(rewards)
+    return group_advantages(rewards)
+
+
+def reject_uniform_groups(rewards: Tensor) -> Tensor:
+    """Dynamic rejection (Section 4.2, Algorithm 1): keep-mask (G,) bool, False where all K rewards are equal.
+
+    Such groups have all-zero advantages and carry no learning signal.
+    """
+    rewards = _as_float_groups(rewards)
+    return (rewards != rewards[:, :1]).any(dim=1)
+
+
+@dataclass(frozen=True)
+class SurrogateStats:
+    """Diagnostics of one loss evaluation (detached floats).
+
+    clip_fraction: fraction of valid ratio units (tokens, skills or trajectories, by granularity) where the
+        clipped branch is the active minimum, i.e. A > 0 and ratio > upper, or A < 0 and ratio < lower; these
+        units get zero gradient (the paper's "clipping fraction", Table 3).
+    approx_kl: k3 estimator of KL(pi_old || pi) per token, mean over valid tokens of (r - 1) - log r with
+        r = exp(log pi - log pi_old); non-negative, and token-level for every granularity so it is comparable.
+    ratio_mean: mean over valid units of the ratio that is clipped.
+    """
+
+    clip_fraction: float
+    approx_kl: float
+    ratio_mean: float
+
+
+def clipped_surrogate_loss(
+    new_logprobs: Tensor,
+    old_logprobs: Tensor,
+    decision_mask: Tensor,
+    advantages: Tensor,
+    granularity: Granularity | str = Granularity.SKILL,
+    clip: tuple[float, float] | None = None,
+) -> tuple[Tensor, SurrogateStats]:
+    """PPO-style clipped surrogate at a chosen granularity; returns (loss = -objective, stats).
+
+    Per valid unit u with ratio r_u and its trajectory's advantage A: objective_u = min(r_u A, clip(r_u) A),
+    with clip bounds `clip` or `default_clip(granularity)`. `old_logprobs` is treated as a constant.
+
+    - ``skill`` (SPO, Eq. 9): r(Z_t) = exp(sum_j [log pi(z_t^j) - log pi_old(z_t^j)]) over the n_tokens
+      tokens of decision t. The SUM (not the mean) is the literal reading of Eq. 7, pi(Z_t) = prod_j
+      pi(z_t^j), so r is the true probability ratio of the whole skill. The default [0.93, 1.15] is calibrated
+      for it: it bounds the change of a skill's probability to -7 % / +15 % (about -0.9 % / +1.8 % per token
+      over 8 tokens). Under the mean reading the same bounds would allow a skill's probability to move by
+      0.93^8 = 0.56x to 1.15^8 = 3.06x, a far looser trust region than PPO's; and Table 9's clip fractions
+      (SPO 11.2 % at [0.93, 1.15] vs token-level 3.5 % at [0.8, 1.28]) fit the wider spread of a sum.
+      Aggregation: mean over all valid skills of the batch. Eq. 9 sums over the skills of a trajectory and
+      averages over trajectories; the skill-mean equals that times the batch constant N_traj / N_skills, so
+      the gradient direction is exactly Eq. 9's (every skill weighted equally, longer trajectories contribute
+      more skills), while the scale stays O(|A|) whatever the horizon, so the learning rate and gradient
+      clipping do not depend on episode length.
+    - ``token`` (GRPO/DAPO): one ratio per token, token-mean over the valid tokens of the batch.
+    - ``ript`` (RIPT-VLA's released code): the same per-token ratio and token-mean as ``token``, with the
+      symmetric clip 0.2; pair it with `leave_one_out_advantages` (see `advantages_for`).
+    - ``trajectory`` (GSPO, Eq. 5 with GSPO's length normalisation): r(tau) = exp(mean of the token log-ratios
+      over all valid tokens of the trajectory), the geometric mean of the token ratios; mean over the
+      trajectories that have at least one valid decision (GSPO's sequence mean).
+    """
+    granularity = Granularity(granularity)
+    lower, upper = default_clip(granularity) if clip is None else clip
+    if new_logprobs.ndim != 3 or new_logprobs.shape != old_logprobs.shape:
+        raise ValueError("new/old log-probs must both have shape (N, D_max, n_tokens)")
+    if decision_mask.shape != new_logprobs.shape[:2] or advantages.shape != new_logprobs.shape[:1]:
+        raise ValueError("decision_mask must be (N, D_max) and advantages (N,)")
+
+    token_mask = decision_mask.bool().unsqueeze(-1).expand_as(new_logprobs)
+    token_log_ratio = torch.where(token_mask, new_logprobs - old_logprobs.detach(), 0.0)
+    advantages = advantages.detach().to(token_log_ratio.dtype)
+
+    if granularity in (Granularity.TOKEN, Granularity.RIPT):
+        log_ratio, unit_mask = token_log_ratio, token_mask
+        unit_adv = advantages[:, None, None].expand_as(log_ratio)
+    elif granularity is Granularity.SKILL:
+        log_ratio, unit_mask = token_log_ratio.sum(dim=-1), decision_mask.bool()
+        unit_adv = advantages[:, None].expand_as(log_ratio)
+    else:
+        n_tokens = token_mask.sum(dim=(1, 2))
+        log_ratio = token_log_ratio.sum(dim=(1, 2)) / n_tokens.clamp(min=1)
+        unit_mask, unit_adv = n_tokens > 0, advantages
+
+    ratio = torch.exp(log_ratio)
+    unclipped = ratio * unit_adv
+    clipped = ratio.clamp(lower, upper) * unit_adv
+    objective = torch.where(unit_mask, torch.minimum(unclipped, clipped), 0.0)
+    n_units = unit_mask.sum().clamp(min=1)
+    loss = -objective.sum() / n_units
+
+    with torch.no_grad():
+        was_clipped = (clipped < unclipped) & unit_mask
+        k3 = torch.where(token_mask, torch.expm1(token_log_ratio) - token_log_ratio, 0.0)
+        stats = SurrogateStats(
+            clip_fraction=(was_clipped.sum() / n_units).item(),
+            approx_kl=(k3.sum() / token_mask.sum().clamp(min=1)).item(),
+            ratio_mean=(torch.where(unit_mask, ratio, 0.0).sum() / n_units).item(),
+        )
+    return loss, stats
