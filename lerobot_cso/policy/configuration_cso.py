@@ -1,0 +1,180 @@
+"""Configuration of the QueST skill-token policy that CSO post-trains (`--policy.type=cso`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, NormalizationMode
+from lerobot.optim.optimizers import AdamWConfig
+from lerobot.optim.schedulers import LRSchedulerConfig
+from torch.optim import Optimizer
+from torch.optim.lr_scheduler import LambdaLR
+
+SKILL_TOKENS_KEY = "observation.skill_tokens"
+SKILL_START_KEY = "observation.skill_start"
+SKILL_STEP_KEY = "observation.skill_step"
+# Integer bookkeeping columns of the R-SFT buffer: they reach `forward` because their names start with
+# `observation.`, but they are no policy inputs (no normalisation, no encoder).
+SKILL_COLUMNS = (SKILL_TOKENS_KEY, SKILL_START_KEY, SKILL_STEP_KEY)
+
+
+@LRSchedulerConfig.register_subclass("cso_two_phase")
+@dataclass
+class TwoPhaseCosineSchedulerConfig(LRSchedulerConfig):
+    """Cosine decay restarted at the autoencoder → prior boundary (QueST trains each stage with its own cosine).
+
+    The learning rate goes from the peak down to ``min_lr_ratio`` × peak over the first
+    ``num_autoencoder_steps`` steps, then restarts and decays again over the remaining steps.
+    """
+
+    num_autoencoder_steps: int = 0
+    min_lr_ratio: float = 0.1
+    num_warmup_steps: int = 0
+
+    def build(self, optimizer: Optimizer, num_training_steps: int) -> LambdaLR:
+        boundary = min(self.num_autoencoder_steps, num_training_steps)
+
+        def lr_lambda(step: int) -> float:
+            start, end = (0, boundary) if step < boundary else (boundary, num_training_steps)
+            local, span = step - start, max(1, end - start)
+            if local < self.num_warmup_steps:
+                return (local + 1) / (self.num_warmup_steps + 1)
+            progress = min(1.0, local / span)
+            return self.min_lr_ratio + (1 - self.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+        return LambdaLR(optimizer, lr_lambda)
+
+
+@PreTrainedConfig.register_subclass("cso")
+@dataclass
+class CSOConfig(PreTrainedConfig):
+    """QueST: an FSQ skill autoencoder plus an autoregressive GPT skill prior (numbers from QueST / CSO App. E).
+
+    One ``lerobot-train`` run trains the autoencoder for ``n_autoencoder_steps`` and then the prior with the
+    autoencoder frozen; the phase lives in a model buffer so ``--resume`` continues in the right phase.
+    """
+
+    n_obs_steps: int = 1
+    # A skill is ``chunk_size`` actions, encoded into ``chunk_size / prod(ae_conv_strides)`` tokens.
+    chunk_size: int = 32
+    n_action_steps: int = 8
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+
+    # Skill autoencoder.
+    ae_dim: int = 256
+    ae_conv_kernels: list[int] = field(default_factory=lambda: [5, 3, 3])
+    ae_conv_strides: list[int] = field(default_factory=lambda: [2, 2, 1])
+    ae_encoder_layers: int = 2
+    ae_decoder_layers: int = 4
+    ae_heads: int = 4
+    ae_dropout: float = 0.1
+    fsq_levels: list[int] = field(default_factory=lambda: [8, 5, 5, 5])
+
+    # Observation encoders.
+    image_keypoints: int = 128
+    image_embed_dim: int = 256
+    state_embed_dim: int = 128
+
+    # Skill prior.
+    prior_dim: int = 384
+    prior_layers: int = 6
+    prior_heads: int = 6
+    prior_dropout: float = 0.1
+
+    # Task vocabulary: the dataset's task strings in id order; filled from the dataset on first training and
+    # saved in config.json, so eval and deployment map text to the same id.
+    tasks: list[str] = field(default_factory=list)
+
+    # Sampling used by `select_action` (QueST: top-k 5, temperature 1).
+    temperature: float = 1.0
+    top_k: int | None = 5
+    greedy: bool = False
+
+    # Training.
+    n_autoencoder_steps: int = 1000
+    decoder_loss_scale: float = 0.0
+    freeze_encoders: bool = False
+    optimizer_lr: float = 1e-4
+    optimizer_min_lr: float = 1e-5
+    optimizer_betas: tuple[float, float] = (0.9, 0.999)
+    optimizer_weight_decay: float = 1e-4
+    optimizer_grad_clip_norm: float = 100.0
+    scheduler_warmup_steps: int = 0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.chunk_size % self.downsample_factor:
+            raise ValueError(
+                f"chunk_size={self.chunk_size} must be divisible by prod(ae_conv_strides)={self.downsample_factor}"
+            )
+        if not 1 <= self.n_action_steps <= self.chunk_size:
+            raise ValueError(f"n_action_steps must be in [1, chunk_size={self.chunk_size}]")
+        if len(self.ae_conv_kernels) != len(self.ae_conv_strides):
+            raise ValueError("ae_conv_kernels and ae_conv_strides must have the same length")
+        if self.top_k is not None and self.top_k < 1:
+            raise ValueError("top_k must be >= 1 or None")
+        if self.temperature <= 0:
+            raise ValueError("temperature must be > 0")
+
+    @property
+    def downsample_factor(self) -> int:
+        return math.prod(self.ae_conv_strides)
+
+    @property
+    def n_tokens(self) -> int:
+        """Tokens per skill (8 for a 32-action chunk downsampled by 4)."""
+        return self.chunk_size // self.downsample_factor
+
+    @property
+    def vocab_size(self) -> int:
+        """Number of FSQ codes (1000 for levels [8, 5, 5, 5])."""
+        return math.prod(self.fsq_levels)
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(self.chunk_size))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> TwoPhaseCosineSchedulerConfig:
+        return TwoPhaseCosineSchedulerConfig(
+            num_autoencoder_steps=self.n_autoencoder_steps,
+            min_lr_ratio=self.optimizer_min_lr / self.optimizer_lr,
+            num_warmup_steps=self.scheduler_warmup_steps,
+        )
+
+    def validate_features(self) -> None:
+        """Check the features a dataset or env gave us; one clear error per problem."""
+        if self.action_feature is None:
+            raise ValueError("the dataset has no 'action' feature; the cso policy needs one to learn skills")
+        if self.robot_state_feature is None and not self.image_features:
+            raise ValueError("the cso policy needs 'observation.state' and/or at least one camera image")
+        for key, ft in self.image_features.items():
+            if len(ft.shape) != 3 or ft.shape[0] != 3:
+                raise ValueError(f"image feature {key!r} must be RGB (3, H, W); got shape {tuple(ft.shape)}")
+        for key, ft in self.input_features.items():
+            if ft.type not in (FeatureType.STATE, FeatureType.VISUAL, FeatureType.ENV):
+                raise ValueError(f"unsupported input feature {key!r} of type {ft.type}")
