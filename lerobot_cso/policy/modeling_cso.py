@@ -149,8 +149,10 @@ class CSOPolicy(PreTrainedPolicy):
             tasks = [tasks] * batch_size
         unknown = sorted({t for t in tasks if t not in self._task_ids})
         if unknown:
-            raise ValueError(f"unknown task {unknown[0]!r}; this policy knows {len(self._task_ids)} task(s): "
-                             f"{sorted(self._task_ids)}")
+            raise ValueError(
+                f"unknown task {unknown[0]!r}; this policy knows {len(self._task_ids)} task(s): "
+                f"{sorted(self._task_ids)}"
+            )
         return torch.tensor([self._task_ids[t] for t in tasks], dtype=torch.long, device=device)
 
     def encode_context(self, batch: dict[str, Any]) -> Tensor:

@@ -12,6 +12,8 @@ from lerobot_cso.policy.configuration_cso import CSOConfig
 
 def make_cso_pre_post_processors(
     config: CSOConfig, dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None
-) -> tuple[PolicyProcessorPipeline[dict[str, Any], dict[str, Any]], PolicyProcessorPipeline[PolicyAction, PolicyAction]]:
+) -> tuple[
+    PolicyProcessorPipeline[dict[str, Any], dict[str, Any]], PolicyProcessorPipeline[PolicyAction, PolicyAction]
+]:
     """Observations and actions are normalised with dataset statistics; the 'task' string passes through."""
     return make_default_pre_post_processors(config, dataset_stats)

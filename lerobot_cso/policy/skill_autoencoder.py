@@ -66,9 +66,13 @@ class SkillAutoencoder(nn.Module):
         super().__init__()
         self.chunk_size = chunk_size
         self.input_proj = nn.Linear(action_dim, dim)
-        self.convs = nn.Sequential(*[CausalConvBlock(dim, k, s) for k, s in zip(conv_kernels, conv_strides, strict=True)])
+        self.convs = nn.Sequential(
+            *[CausalConvBlock(dim, k, s) for k, s in zip(conv_kernels, conv_strides, strict=True)]
+        )
         self.encoder = nn.TransformerEncoder(
-            _transformer_layer(nn.TransformerEncoderLayer, dim, heads, dropout), encoder_layers, enable_nested_tensor=False
+            _transformer_layer(nn.TransformerEncoderLayer, dim, heads, dropout),
+            encoder_layers,
+            enable_nested_tensor=False,
         )
         self.quantizer = FSQ(levels=list(fsq_levels), dim=dim)
         self.decoder = nn.TransformerDecoder(
