@@ -1,0 +1,187 @@
+"""The cso policy in-process: overfitting, log-prob hooks, KV cache, save/load, freezing, padding, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.policies.factory import make_pre_post_processors
+
+from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.policy.modeling_cso import masked_l1, skill_nll
+
+
+def tiny_config(**overrides) -> CSOConfig:
+    kwargs = {
+        **TINY_POLICY_KWARGS,
+        "device": "cpu",
+        "tasks": list(TASKS),
+        "input_features": {"observation.state": PolicyFeature(FeatureType.STATE, (6,))},
+        "output_features": {"action": PolicyFeature(FeatureType.ACTION, (3,))},
+        **overrides,
+    }
+    return CSOConfig(**kwargs)
+
+
+def batch_of(size: int = 4, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "observation.state": torch.randn(size, 6, generator=g),
+        "task": [TASKS[i % 2] for i in range(size)],
+    }
+
+
+@pytest.fixture
+def policy() -> CSOPolicy:
+    torch.manual_seed(0)
+    return CSOPolicy(tiny_config()).eval()
+
+
+def test_overfit_tiny_dataset_reconstruction_and_prior(tmp_path):
+    """Both phases learn: L1 reconstruction < 0.08 and prior NLL < 0.7 nats/token on a tiny dataset."""
+    torch.manual_seed(0)
+    root = tmp_path / "ds"
+    make_synthetic_dataset(root, episode_lengths=(48, 48))
+    cfg = tiny_config(n_autoencoder_steps=300, ae_dropout=0.0, prior_dropout=0.0)
+    ds = LeRobotDataset("local/synthetic", root=root, delta_timestamps={"action": [i / 10 for i in range(32)]})
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=ds.meta.stats)
+    policy = CSOPolicy(cfg, dataset_meta=ds.meta).train()
+    loader = torch.utils.data.DataLoader(ds, batch_size=len(ds), shuffle=False)
+    batch = pre(next(iter(loader)))
+    opt = torch.optim.AdamW(policy.get_optim_params(), lr=2e-3)
+    infos = []
+    for _ in range(300 + 200):
+        loss, info = policy.forward(batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        infos.append(info)
+    assert infos[0]["recon_l1"] > 0.3
+    assert infos[299]["phase"] == 0 and infos[299]["recon_l1"] < 0.08
+    assert infos[300]["phase"] == 1 and infos[300]["nll"] > 3.0
+    assert infos[-1]["nll"] < 0.7
+
+
+def test_teacher_forced_logprobs_equal_sampling_logprobs(policy):
+    context = policy.encode_context(batch_of(6))
+    tokens, logp = policy.sample_skills(context, generator=torch.Generator().manual_seed(1))
+    assert tokens.shape == (6, 8) and tokens.dtype == torch.long
+    recomputed = policy.token_logprobs(context, tokens)
+    torch.testing.assert_close(recomputed, logp, atol=1e-5, rtol=0)
+    # A proper distribution: log-probs are <= 0 and sampling at T=1 is not degenerate.
+    assert (logp <= 0).all() and logp.min() < -1
+
+
+def test_logprobs_are_those_of_the_filtered_distribution(policy):
+    context = policy.encode_context(batch_of(5))
+    tokens, logp = policy.sample_skills(context, temperature=0.5, top_k=3, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(
+        policy.token_logprobs(context, tokens, temperature=0.5, top_k=3), logp, atol=1e-5, rtol=0
+    )
+    full = policy.token_logprobs(context, tokens)
+    assert (logp > full).all()  # renormalising over 3 of 1000 codes raises every sampled token's probability
+    # Top-k = 1 at any temperature is greedy: log-prob exactly 0.
+    tokens1, logp1 = policy.sample_skills(context, top_k=1, generator=torch.Generator().manual_seed(3))
+    greedy, _ = policy.sample_skills(context, greedy=True)
+    assert torch.equal(tokens1, greedy) and torch.all(logp1 == 0)
+
+
+def test_token_logprobs_carry_gradients_to_the_prior_only(policy):
+    context = policy.encode_context(batch_of(2)).detach()
+    tokens, _ = policy.sample_skills(context)
+    policy.token_logprobs(context, tokens).sum().backward()
+    assert all(p.grad is not None for p in policy.prior.parameters() if p.requires_grad)
+    assert all(p.grad is None for p in policy.autoencoder.parameters())
+
+
+def test_kv_cached_sampling_equals_uncached(policy):
+    context = policy.encode_context(batch_of(16, seed=4))
+    cached = policy.sample_skills(context, generator=torch.Generator().manual_seed(5), use_cache=True)
+    uncached = policy.sample_skills(context, generator=torch.Generator().manual_seed(5), use_cache=False)
+    assert torch.equal(cached[0], uncached[0])
+    torch.testing.assert_close(cached[1], uncached[1], atol=1e-5, rtol=0)
+
+
+def test_select_action_executes_n_action_steps_then_replans(policy):
+    policy.config.greedy = True
+    policy.reset()
+    batch = batch_of(2)
+    chunk = policy.predict_action_chunk(batch)
+    assert chunk.shape == (2, 32, 3)
+    actions = [policy.select_action(batch) for _ in range(9)]
+    torch.testing.assert_close(torch.stack(actions[:8], 1), chunk[:, :8])
+    assert len(policy._action_queue) == 7  # the 9th call decoded a fresh skill
+
+
+def test_save_load_round_trip_identical_actions_and_task_map(policy, tmp_path):
+    policy.config.greedy = True
+    policy.set_encoders_frozen(True)
+    policy.save_pretrained(tmp_path)
+    loaded = CSOPolicy.from_pretrained(tmp_path).eval()
+    assert loaded.config.tasks == list(TASKS)
+    assert loaded.config.freeze_encoders
+    assert not any(p.requires_grad for p in loaded.encoders.parameters())
+    assert all(p.requires_grad for p in loaded.prior.parameters())
+    batch = batch_of(3)
+    torch.testing.assert_close(loaded.predict_action_chunk(batch), policy.predict_action_chunk(batch), atol=0, rtol=0)
+
+
+def test_frozen_encoders_are_left_out_of_the_optimizer(policy):
+    n_all = sum(len(g["params"]) for g in policy.get_optim_params())
+    policy.set_encoders_frozen(True)
+    n_frozen = sum(len(g["params"]) for g in policy.get_optim_params())
+    assert n_all - n_frozen == len(policy.parameter_groups()["encoders"])
+    policy.train()
+    assert not policy.encoders.training and policy.prior.training  # BatchNorm statistics stay put too
+
+
+def test_padded_chunk_steps_do_not_count():
+    pred, target = torch.zeros(1, 4, 2), torch.tensor([[[1.0, 1.0], [3.0, 3.0], [50.0, 50.0], [50.0, 50.0]]])
+    is_pad = torch.tensor([[False, False, True, True]])
+    assert masked_l1(pred, target, is_pad).item() == pytest.approx(2.0)  # (1 + 3) / 2
+    assert masked_l1(pred, target, None).item() == pytest.approx(26.0)  # (1 + 3 + 50 + 50) / 4
+
+
+def test_skill_nll_hand_computed():
+    logits = torch.log(torch.tensor([[[0.5, 0.25, 0.25], [0.1, 0.8, 0.1]]]))  # one skill of two tokens
+    tokens = torch.tensor([[0, 1]])
+    expected = -(torch.log(torch.tensor(0.5)) + torch.log(torch.tensor(0.8))) / 2
+    torch.testing.assert_close(skill_nll(logits, tokens), expected)
+    assert skill_nll(logits, tokens, mask=torch.tensor([False])).item() == 0.0
+
+
+def test_unknown_task_is_a_clear_error(policy):
+    batch = batch_of(2)
+    batch["task"] = ["open the door", TASKS[0]]
+    with pytest.raises(ValueError, match="unknown task 'open the door'"):
+        policy.select_action(batch)
+
+
+def test_image_shape_differing_from_checkpoint_is_a_clear_error(tmp_path):
+    image = {"observation.images.cam": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))}
+    cfg = tiny_config(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (6,)), **image})
+    CSOPolicy(cfg).save_pretrained(tmp_path)
+    other = tiny_config(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
+            "observation.images.cam": PolicyFeature(FeatureType.VISUAL, (3, 48, 48)),
+        }
+    )
+    with pytest.raises(ValueError, match=r"'observation.images.cam' has shape \(3, 48, 48\) but the checkpoint"):
+        CSOPolicy.from_pretrained(tmp_path, config=other)
+
+
+def test_image_policy_forward_and_sampling(tmp_path):
+    cfg = tiny_config(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
+            "observation.images.cam": PolicyFeature(FeatureType.VISUAL, (3, 32, 32)),
+        }
+    )
+    policy = CSOPolicy(cfg)
+    batch = {**batch_of(2), "observation.images.cam": torch.rand(2, 3, 32, 32), "action": torch.randn(2, 32, 3)}
+    loss, info = policy.forward(batch)
+    assert info["phase"] == 0 and loss.requires_grad
+    assert policy.eval().predict_action_chunk(batch).shape == (2, 32, 3)
