@@ -4,4 +4,5 @@ LeRobot imports every installed distribution whose name starts with ``lerobot_po
 name. Importing this module registers the ``cso`` policy type and the ``cso_metaworld`` env type.
 """
 
+from lerobot_cso.envs.config import CSOMetaWorldEnvConfig  # noqa: F401  (registers --env.type=cso_metaworld)
 from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: F401  (registration on import)

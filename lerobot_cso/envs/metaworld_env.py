@@ -1,0 +1,202 @@
+"""A gymnasium env over MetaWorld v3 tasks: 39-d state, optional 128×128 cameras, seeded initial states.
+
+Initial states are named by an integer: ``reset(seed=s)`` seeds the task's own RNG with ``seed_offset + s``
+and redraws object and goal positions from it (``_freeze_rand_vec=False``, ``seeded_rand_vec=True``, the
+route LeRobot's MetaWorld env takes), so the same seed replays the same state exactly, whatever ran before.
+``reset(options={"task": name})`` switches the task; one MuJoCo env per task is built lazily (at the
+first reset on that task, ≈0.25 s) and kept in a small LRU cache (≈20 MB each), so one env serves many
+tasks. The goal position is part of the observation (MT-style), as the scripted experts and a state-only
+policy need it.
+
+An episode terminates at the first success (``info["is_success"]``) and is truncated after
+``max_episode_steps``. ``reset(options={"park": True})`` parks the env: until its next real reset it does
+no simulation and every step returns the last observation; the rollout engine parks an env that has no
+episode left to run.
+
+The observation is a dict in LeRobot's env convention: ``agent_pos`` (39, float32), and with cameras
+``pixels`` = ``{camera: uint8 (H, W, 3)}``, which ``lerobot.envs.utils.preprocess_observation`` maps to
+``observation.state`` and ``observation.images.<camera>``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections import OrderedDict
+from collections.abc import Sequence
+from functools import cache
+from typing import Any
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless offscreen rendering; must precede the mujoco import
+
+import gymnasium as gym  # noqa: E402
+import metaworld  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from gymnasium import spaces  # noqa: E402
+from metaworld.env_dict import ALL_V3_ENVIRONMENTS  # noqa: E402
+
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM  # noqa: E402
+from lerobot_cso.envs.tasks import check_task, task_description  # noqa: E402
+
+_UPSIDE_DOWN = ("corner", "corner2")
+DEFAULT_RENDER_CAMERA = "corner2"
+
+warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high")
+
+
+@cache
+def _goal_observable_task(task: str) -> metaworld.Task:
+    """A fixed metaworld ``Task`` with the goal in the observation (built once per process)."""
+    return metaworld.MT1(task, seed=0).train_tasks[0]
+
+
+def _zeros(space: spaces.Space) -> Any:
+    """An all-zero observation of a (nested dict of) Box space."""
+    if isinstance(space, spaces.Dict):
+        return {key: _zeros(sub) for key, sub in space.items()}
+    return np.zeros(space.shape, space.dtype)
+
+
+def check_cameras(cameras: Sequence[str]) -> None:
+    """Raise ``ValueError`` naming the valid cameras when one is unknown."""
+    unknown = [c for c in cameras if c not in CAMERAS]
+    if unknown:
+        raise ValueError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
+
+
+class CSOMetaWorldEnv(gym.Env):
+    """One MetaWorld task at a time (switchable on reset), state observations, optional cameras."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
+
+    def __init__(
+        self,
+        task: str,
+        cameras: Sequence[str] = (),
+        image_size: int = IMAGE_SIZE,
+        max_episode_steps: int = HORIZON,
+        seed_offset: int = 0,
+        render_camera: str | None = None,
+        max_cached_tasks: int = 4,
+    ) -> None:
+        super().__init__()
+        check_task(task)
+        check_cameras(cameras)
+        if max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        self.cameras = tuple(cameras)
+        self.render_camera = render_camera or (self.cameras[0] if self.cameras else DEFAULT_RENDER_CAMERA)
+        check_cameras([self.render_camera])
+        self.image_size = image_size
+        self.seed_offset = seed_offset
+        self.render_mode = "rgb_array"
+        self._max_episode_steps = max_episode_steps
+        self._max_cached_tasks = max(1, max_cached_tasks)
+        self._sims: OrderedDict[str, Any] = OrderedDict()
+        self._renderers: dict[str, mujoco.Renderer] = {}
+        self._set_task(task)
+        self._t = 0
+        self._parked = False
+        self._last_obs: dict[str, Any] | None = None
+
+        obs_spaces: dict[str, spaces.Space] = {"agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), dtype=np.float32)}
+        if self.cameras:
+            image = spaces.Box(0, 255, (image_size, image_size, 3), dtype=np.uint8)
+            obs_spaces["pixels"] = spaces.Dict({cam: image for cam in self.cameras})
+        self.observation_space = spaces.Dict(obs_spaces)
+        self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), dtype=np.float32)
+
+    @property
+    def sim(self) -> Any:
+        """The MuJoCo MetaWorld env of the current task, built on first use."""
+        sim = self._sims.get(self.task)
+        if sim is None:
+            while len(self._sims) >= self._max_cached_tasks:
+                self._evict(next(iter(self._sims)))
+            sim = ALL_V3_ENVIRONMENTS[self.task]()
+            sim.set_task(_goal_observable_task(self.task))
+            sim._freeze_rand_vec = False
+            sim.seeded_rand_vec = True
+            sim.max_path_length = max(HORIZON, self._max_episode_steps)
+            self._sims[self.task] = sim
+        self._sims.move_to_end(self.task)
+        return sim
+
+    def _evict(self, task: str) -> None:
+        renderer = self._renderers.pop(task, None)
+        if renderer is not None:
+            renderer.close()
+        self._sims.pop(task).close()
+
+    def _set_task(self, task: str) -> None:
+        check_task(task)
+        self.task = task
+        self.task_description = task_description(task)
+
+    def _renderer(self) -> mujoco.Renderer:
+        renderer = self._renderers.get(self.task)
+        if renderer is None:
+            model = self.sim.model
+            model.vis.quality.offsamples = 0
+            model.vis.quality.shadowsize = 0
+            model.vis.global_.offwidth = self.image_size
+            model.vis.global_.offheight = self.image_size
+            model.cam_pos[model.camera("corner2").id] = [0.75, 0.075, 0.7]  # the framing QueST and LeRobot use
+            renderer = mujoco.Renderer(model, self.image_size, self.image_size)
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+            self._renderers[self.task] = renderer
+        return renderer
+
+    def _image(self, camera: str) -> np.ndarray:
+        renderer = self._renderer()
+        renderer.update_scene(self.sim.data, camera=camera)
+        image = renderer.render()
+        return np.ascontiguousarray(image[::-1, ::-1]) if camera in _UPSIDE_DOWN else image
+
+    def _observation(self, state: np.ndarray) -> dict[str, Any]:
+        obs: dict[str, Any] = {"agent_pos": state.astype(np.float32)}
+        if self.cameras:
+            obs["pixels"] = {cam: self._image(cam) for cam in self.cameras}
+        return obs
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Start an episode from initial state ``seed`` (options: ``task`` to switch, ``park`` to park)."""
+        super().reset(seed=seed)
+        options = options or {}
+        if options.get("park"):
+            self._parked = True
+            if self._last_obs is None:  # parked before its first episode: a blank observation
+                self._last_obs = _zeros(self.observation_space)
+            return self._last_obs, {"is_success": False}
+        if "task" in options:
+            self._set_task(options["task"])
+        if seed is not None:
+            self.sim.seed(self.seed_offset + seed)
+        state, _ = self.sim.reset()
+        self._t = 0
+        self._parked = False
+        self._last_obs = self._observation(state)
+        return self._last_obs, {"is_success": False}
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        """Apply one action; terminated on success, truncated at ``max_episode_steps``."""
+        if self._parked:
+            return self._last_obs, 0.0, False, False, {"is_success": False}
+        state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
+        self._t += 1
+        success = bool(info["success"])
+        self._last_obs = self._observation(state)
+        truncated = not success and self._t >= self._max_episode_steps
+        return self._last_obs, float(reward), success, truncated, {"is_success": success}
+
+    def render(self) -> np.ndarray:
+        """An RGB frame of the render camera (for LeRobot's eval videos)."""
+        return self._image(self.render_camera)
+
+    def close(self) -> None:
+        for task in list(self._sims):
+            self._evict(task)

@@ -1,0 +1,259 @@
+"""Policy-driven rollouts: "roll out this policy from these initial states, K times each".
+
+Every later stage (R-SFT, SPO, evaluation) goes through :meth:`RolloutEngine.rollout`. The K episodes of a
+group all start from the same initial state ``(task, seed)``; per episode the engine returns the
+observations and executed actions of every step, and per decision (every ``n_action_steps`` steps) the
+encoder context the skill was sampled from, the sampled tokens and their sampling log-probs, so that
+``policy.token_logprobs(context, tokens, temperature, top_k)`` recomputes them with gradients.
+
+Inference is batched across all envs: episodes start on multiples of ``n_action_steps`` (see
+:class:`~lerobot_cso.rollout.pool.EnvPool`), so each decision round is one call of the policy hooks::
+
+    ctx = policy.encode_context(preprocessor(obs))          # (B, P, d)
+    tokens, logp = policy.sample_skills(ctx, temperature, top_k, greedy, generator)
+    actions = postprocessor(policy.decode_skills(tokens)[:, :n_action_steps])
+
+Sampling draws from one ``torch.Generator`` seeded per call: a call is reproducible given the same
+initial states, K, sampling settings, seed and number of envs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from lerobot.envs.utils import preprocess_observation
+from lerobot.utils.constants import OBS_IMAGES
+from torch import Tensor
+
+from lerobot_cso.envs.constants import ACTION_DIM, HORIZON
+from lerobot_cso.envs.tasks import task_description
+from lerobot_cso.rollout.pool import EnvPool, Job, Trace, Vectorization
+
+
+class InitialState(NamedTuple):
+    """An initial state: a MetaWorld task and the seed that places its objects and goal."""
+
+    task: str
+    seed: int
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """How skills are drawn: top-k sampling at a temperature (QueST: k=5, T=1), or greedy (argmax)."""
+
+    temperature: float = 1.0
+    top_k: int | None = 5
+    greedy: bool = False
+
+
+@dataclass
+class Episode:
+    """One rolled-out episode; ``states[t]`` (and ``images[cam][t]``) is what ``actions[t]`` was chosen from."""
+
+    task: str
+    task_description: str
+    init_seed: int
+    group: int  # index of the initial state in the request
+    sample: int  # 0 .. K-1 within the group
+    success: bool
+    length: int  # env steps executed
+    states: Tensor  # (length, 39) float32, raw (unnormalised) MetaWorld observations
+    actions: Tensor  # (length, 4) float32, executed actions (unnormalised, clipped to [-1, 1])
+    images: dict[str, Tensor]  # camera -> (length, H, W, 3) uint8; empty without cameras
+    decision_steps: Tensor  # (D,) int64, the step at which each skill was sampled
+    contexts: Tensor  # (D, P, d) float32, encoder output the skill was sampled from
+    tokens: Tensor  # (D, n_tokens) int64
+    logprobs: Tensor  # (D, n_tokens) float32, log-probs under the distribution sampled from
+
+
+@dataclass
+class RolloutResult:
+    """All episodes of one call, ordered by (group, sample), with throughput figures."""
+
+    episodes: list[Episode]
+    k: int
+    sampling: Sampling
+    seconds: float
+    policy_seconds: float
+
+    @property
+    def env_steps(self) -> int:
+        return sum(e.length for e in self.episodes)
+
+    @property
+    def decisions(self) -> int:
+        return sum(len(e.decision_steps) for e in self.episodes)
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.env_steps / self.seconds
+
+    @property
+    def decisions_per_s(self) -> float:
+        return self.decisions / self.seconds
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean([e.success for e in self.episodes]))
+
+    def groups(self) -> list[list[Episode]]:
+        """The episodes grouped by initial state: ``groups()[g]`` holds the K samples of state ``g``."""
+        return [self.episodes[g * self.k : (g + 1) * self.k] for g in range(len(self.episodes) // self.k)]
+
+
+class _PolicyController:
+    """Pool controller: batched skill sampling for every slot whose action queue ran dry."""
+
+    def __init__(self, engine: RolloutEngine, sampling: Sampling, generator: torch.Generator) -> None:
+        self.engine = engine
+        self.sampling = sampling
+        self.generator = generator
+        n = engine.pool.num_envs
+        self.queues: list[list[np.ndarray]] = [[] for _ in range(n)]
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.descriptions: list[str] = [""] * n
+        self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(n)]
+        self.policy_seconds = 0.0
+
+    def start(self, slot: int, job: Job) -> None:
+        self.queues[slot] = []
+        self.steps[slot] = 0
+        self.descriptions[slot] = task_description(job.task)
+        self.decisions[slot] = []
+
+    def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
+        rows = [slot for slot in np.flatnonzero(active) if not self.queues[slot]]
+        if rows:
+            started = time.perf_counter()
+            decided = self.engine.decide(obs, rows, self.descriptions, self.sampling, self.generator)
+            contexts, tokens, logprobs, chunks = decided
+            for i, slot in enumerate(rows):
+                self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
+                self.queues[slot] = list(chunks[i])
+            self.policy_seconds += time.perf_counter() - started
+        actions = np.zeros((len(active), ACTION_DIM), dtype=np.float32)
+        for slot in np.flatnonzero(active):
+            actions[slot] = self.queues[slot].pop(0)
+            self.steps[slot] += 1
+        return actions
+
+    def finish(self, slot: int) -> dict[str, Tensor]:
+        steps, contexts, tokens, logprobs = zip(*self.decisions[slot], strict=True)
+        return {
+            "decision_steps": torch.tensor(steps, dtype=torch.int64),
+            "contexts": torch.stack(contexts),
+            "tokens": torch.stack(tokens),
+            "logprobs": torch.stack(logprobs),
+        }
+
+
+class RolloutEngine:
+    """A policy, its processors and a pool of MetaWorld envs; reused across calls (models stay built).
+
+    ``cameras`` defaults to the cameras the policy reads (its ``observation.images.<camera>`` inputs).
+    """
+
+    def __init__(
+        self,
+        policy: Any,
+        preprocessor: Any,
+        postprocessor: Any,
+        num_envs: int = 16,
+        cameras: Sequence[str] | None = None,
+        max_steps: int = HORIZON,
+        vectorization: Vectorization = "sync",
+    ) -> None:
+        self.policy = policy
+        self.preprocessor = preprocessor
+        self.postprocessor = postprocessor
+        if cameras is None:
+            prefix = f"{OBS_IMAGES}."
+            cameras = [key.removeprefix(prefix) for key in policy.config.input_features if key.startswith(prefix)]
+        self.pool = EnvPool(num_envs, cameras, max_steps=max_steps, vectorization=vectorization)
+
+    @torch.no_grad()
+    def decide(
+        self,
+        obs: dict[str, Any],
+        rows: list[int],
+        descriptions: list[str],
+        sampling: Sampling,
+        generator: torch.Generator,
+    ) -> tuple[Tensor, Tensor, Tensor, np.ndarray]:
+        """One batched decision for env ``rows``: contexts, tokens, log-probs (CPU) and action chunks."""
+        raw: dict[str, Any] = {"agent_pos": obs["agent_pos"][rows]}
+        if "pixels" in obs:
+            raw["pixels"] = {cam: image[rows] for cam, image in obs["pixels"].items()}
+        batch = preprocess_observation(raw)
+        batch["task"] = [descriptions[r] for r in rows]
+        batch = self.preprocessor(batch)
+        context = self.policy.encode_context(batch)
+        tokens, logprobs = self.policy.sample_skills(
+            context,
+            temperature=sampling.temperature,
+            top_k=sampling.top_k,
+            greedy=sampling.greedy,
+            generator=generator,
+        )
+        chunk = self.policy.decode_skills(tokens)[:, : self.policy.config.n_action_steps]
+        flat = self.postprocessor(chunk.reshape(-1, chunk.shape[-1]))
+        chunks = flat.reshape(chunk.shape).float().cpu().numpy()
+        return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks
+
+    def rollout(
+        self,
+        initial_states: Sequence[InitialState | tuple[str, int]],
+        k: int = 1,
+        sampling: Sampling = Sampling(),
+        seed: int = 0,
+        progress: str | None = None,
+    ) -> RolloutResult:
+        """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample)."""
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        states = [InitialState(*s) for s in initial_states]
+        jobs = [Job(s.task, s.seed, (g, i)) for g, s in enumerate(states) for i in range(k)]
+        device = torch.device(self.policy.config.device or "cpu")
+        generator = torch.Generator(device=device).manual_seed(seed)
+        controller = _PolicyController(self, sampling, generator)
+        was_training = self.policy.training
+        self.policy.eval()
+        started = time.perf_counter()
+        traces: list[Trace] = [None] * len(jobs)  # type: ignore[list-item]
+        try:
+            for index, trace in self.pool.run(jobs, controller, self.policy.config.n_action_steps, progress):
+                traces[index] = trace
+        finally:
+            self.policy.train(was_training)
+        seconds = time.perf_counter() - started
+        episodes = [
+            Episode(
+                task=t.job.task,
+                task_description=task_description(t.job.task),
+                init_seed=t.job.init_seed,
+                group=t.job.key[0],
+                sample=t.job.key[1],
+                success=t.success,
+                length=t.length,
+                states=torch.from_numpy(t.states),
+                actions=torch.from_numpy(t.actions),
+                images={cam: torch.from_numpy(frames) for cam, frames in t.images.items()},
+                **t.record,
+            )
+            for t in traces
+        ]
+        return RolloutResult(episodes, k, sampling, seconds, controller.policy_seconds)
+
+    def close(self) -> None:
+        self.pool.close()
+
+    def __enter__(self) -> RolloutEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

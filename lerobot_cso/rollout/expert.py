@@ -1,0 +1,43 @@
+"""Scripted MetaWorld experts (``metaworld.policies``) with Gaussian action noise, as a pool controller.
+
+The noise of an episode is drawn from its own generator, seeded by ``(seed, task, init_seed)``, so an
+episode's actions do not depend on which slot runs it or on what ran before: the same seed gives the same
+demonstrations, whatever the number of envs and however often generation was interrupted.
+"""
+
+from __future__ import annotations
+
+import zlib
+from typing import Any
+
+import numpy as np
+from metaworld.policies import ENV_POLICY_MAP
+
+from lerobot_cso.rollout.pool import Job
+
+
+class ExpertController:
+    """Per slot: the task's scripted expert plus N(0, ``noise_std``²) noise, clipped to [-1, 1]."""
+
+    def __init__(self, num_envs: int, noise_std: float = 0.2, seed: int = 0) -> None:
+        if noise_std < 0:
+            raise ValueError(f"noise_std must be >= 0, got {noise_std}")
+        self.noise_std = noise_std
+        self.seed = seed
+        self._experts: list[Any] = [None] * num_envs
+        self._rngs: list[np.random.Generator | None] = [None] * num_envs
+
+    def start(self, slot: int, job: Job) -> None:
+        self._experts[slot] = ENV_POLICY_MAP[job.task]()
+        self._rngs[slot] = np.random.default_rng([self.seed, zlib.crc32(job.task.encode()), job.init_seed])
+
+    def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
+        actions = np.zeros((len(active), 4), dtype=np.float32)
+        for slot in np.flatnonzero(active):
+            action = self._experts[slot].get_action(obs["agent_pos"][slot])
+            action = action + self._rngs[slot].normal(0.0, self.noise_std, size=action.shape)
+            actions[slot] = np.clip(action, -1.0, 1.0)
+        return actions
+
+    def finish(self, slot: int) -> None:
+        self._experts[slot] = self._rngs[slot] = None
