@@ -1,0 +1,1 @@
+"""AgileX PiPER over CAN without torch or LeRobot: codec, driver, simulated firmware."""
