@@ -20,24 +20,21 @@ The observation is a dict in LeRobot's env convention: ``agent_pos`` (39, float3
 
 from __future__ import annotations
 
-import os
 import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 from functools import cache
 from typing import Any
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # headless offscreen rendering; must precede the mujoco import
+import gymnasium as gym
+import metaworld
+import mujoco
+import numpy as np
+from gymnasium import spaces
+from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-import gymnasium as gym  # noqa: E402
-import metaworld  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-from gymnasium import spaces  # noqa: E402
-from metaworld.env_dict import ALL_V3_ENVIRONMENTS  # noqa: E402
-
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM  # noqa: E402
-from lerobot_cso.envs.tasks import check_task, task_description  # noqa: E402
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
+from lerobot_cso.envs.tasks import check_task, task_description
 
 _UPSIDE_DOWN = ("corner", "corner2")
 DEFAULT_RENDER_CAMERA = "corner2"
