@@ -20,7 +20,7 @@ initial states, K, sampling settings, seed and number of envs.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -152,6 +152,23 @@ class _PolicyController:
         }
 
 
+def _episode(trace: Trace) -> Episode:
+    group, sample = trace.job.key
+    return Episode(
+        task=trace.job.task,
+        task_description=task_description(trace.job.task),
+        init_seed=trace.job.init_seed,
+        group=group,
+        sample=sample,
+        success=trace.success,
+        length=trace.length,
+        states=torch.from_numpy(trace.states),
+        actions=torch.from_numpy(trace.actions),
+        images={cam: torch.from_numpy(frames) for cam, frames in trace.images.items()},
+        **trace.record,
+    )
+
+
 class RolloutEngine:
     """A policy, its processors and a pool of MetaWorld envs; reused across calls (models stay built).
 
@@ -212,8 +229,12 @@ class RolloutEngine:
         sampling: Sampling = Sampling(),
         seed: int = 0,
         progress: str | None = None,
+        on_episode: Callable[[Episode], None] | None = None,
     ) -> RolloutResult:
-        """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample)."""
+        """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample).
+
+        ``on_episode`` is called with each episode as soon as it finishes (in finishing order).
+        """
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
         states = [InitialState(*s) for s in initial_states]
@@ -224,30 +245,15 @@ class RolloutEngine:
         was_training = self.policy.training
         self.policy.eval()
         started = time.perf_counter()
-        traces: list[Trace] = [None] * len(jobs)  # type: ignore[list-item]
+        episodes: list[Episode] = [None] * len(jobs)  # type: ignore[list-item]
         try:
             for index, trace in self.pool.run(jobs, controller, self.policy.config.n_action_steps, progress):
-                traces[index] = trace
+                episodes[index] = _episode(trace)
+                if on_episode is not None:
+                    on_episode(episodes[index])
         finally:
             self.policy.train(was_training)
-        seconds = time.perf_counter() - started
-        episodes = [
-            Episode(
-                task=t.job.task,
-                task_description=task_description(t.job.task),
-                init_seed=t.job.init_seed,
-                group=t.job.key[0],
-                sample=t.job.key[1],
-                success=t.success,
-                length=t.length,
-                states=torch.from_numpy(t.states),
-                actions=torch.from_numpy(t.actions),
-                images={cam: torch.from_numpy(frames) for cam, frames in t.images.items()},
-                **t.record,
-            )
-            for t in traces
-        ]
-        return RolloutResult(episodes, k, sampling, seconds, controller.policy_seconds)
+        return RolloutResult(episodes, k, sampling, time.perf_counter() - started, controller.policy_seconds)
 
     def close(self) -> None:
         self.pool.close()
