@@ -1,0 +1,82 @@
+"""Helpers for the PiPER tests: unique python-can channels, an emulated arm + driver rig, a bus monitor."""
+
+from __future__ import annotations
+
+import random
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import can
+from piper_can.driver import DriverConfig, PiperDriver
+from piper_can.emulator import EmulatorConfig, PiperEmulator
+
+
+def unique_virtual_channel() -> str:
+    return f"piper-test-{uuid.uuid4().hex[:12]}"
+
+
+def unique_udp_channel() -> tuple[str, int]:
+    """A random IPv4 multicast group and UDP port (Linux delivers by port, so both must be unique)."""
+    rng = random.SystemRandom()
+    group = f"239.{rng.randint(1, 254)}.{rng.randint(1, 254)}.{rng.randint(1, 254)}"
+    return group, rng.randint(20_000, 60_000)
+
+
+@dataclass
+class Rig:
+    """An emulated arm and a driver on one virtual channel, plus a passive monitor of every frame."""
+
+    channel: str
+    emulator: PiperEmulator
+    driver: PiperDriver
+    monitor: can.BusABC
+    buses: list[can.BusABC] = field(default_factory=list)
+
+    def drain(self, timeout: float = 0.0) -> list[can.Message]:
+        """Every frame the monitor has seen since the last drain."""
+        frames = []
+        while (msg := self.monitor.recv(timeout=timeout)) is not None:
+            frames.append(msg)
+        return frames
+
+
+@contextmanager
+def make_rig(
+    emulator_config: EmulatorConfig | None = None,
+    connect: bool = True,
+    enable: bool = True,
+    **driver_options,
+) -> Iterator[Rig]:
+    channel = unique_virtual_channel()
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    monitor = can.Bus(interface="virtual", channel=channel)
+    emulator = PiperEmulator(emulator_bus, emulator_config)
+    emulator.start()
+    # The emulator shares this process (and the GIL) with the driver and the test, so a busy machine can
+    # delay its 200 Hz loop: only the watchdog tests use the 15 ms default.
+    driver_options.setdefault("feedback_timeout_s", 0.1)
+    driver = PiperDriver(DriverConfig(interface="virtual", channel=channel, **driver_options))
+    rig = Rig(channel, emulator, driver, monitor, [emulator_bus, monitor])
+    try:
+        if connect:
+            driver.connect()
+            if enable:
+                driver.enable()
+        yield rig
+    finally:
+        driver.close()
+        emulator.stop()
+        for bus in rig.buses:
+            bus.shutdown()
+
+
+def wait_until(condition, timeout: float = 2.0, period: float = 0.002) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(period)
+    return condition()

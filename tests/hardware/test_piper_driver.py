@@ -1,0 +1,257 @@
+"""The driver against the emulated arm on a real python-can virtual bus (emulator in real time)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import pytest
+from piper_can import codec
+from piper_can.driver import DisconnectPolicy, DriverConfig, PiperDriver
+from piper_can.emulator import EmulatorConfig
+from piper_can.errors import (
+    EmergencyStopError,
+    EnableTimeoutError,
+    FeedbackStaleError,
+    FirmwareFaultError,
+    PiperConnectionError,
+)
+from piper_can.safety import SDK_SOFT_LIMITS
+from piper_rig import make_rig, unique_virtual_channel, wait_until
+
+PERIOD = 0.005
+POSE = (0.3, 0.8, -0.6, 0.2, 0.1, -0.2)
+
+
+def walk_to(driver: PiperDriver, joints, gripper=None, timeout: float = 5.0) -> None:
+    """Command repeatedly (the step limit caps each command) until the arm is there."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        driver.command(joints, gripper)
+        there = driver.state().joint_positions_rad
+        if all(abs(a - b) < 1e-3 for a, b in zip(there, joints, strict=True)):
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"arm did not reach {joints}: {driver.state().joint_positions_rad}")
+
+
+def motion_frames(frames):
+    return [m for m in frames if m.arbitration_id in (*codec.ID_JOINT_COMMAND, 0x159)]
+
+
+# ---------------------------------------------------------------------------- connect / enable
+def test_enable_handshake_converges_and_rates_are_measured(rig):
+    assert rig.emulator.enabled == (True,) * 6 and rig.emulator.gripper_enabled
+    assert rig.emulator.ctrl_mode == codec.CtrlMode.CAN and rig.emulator.speed_percent == 50
+    enables = [m for m in rig.drain() if m.arbitration_id == 0x471]
+    assert len(enables) >= 2 and all(bytes(m.data) == bytes.fromhex("0702000000000000") for m in enables)
+    time.sleep(1.2)
+    state = rig.driver.state()
+    assert state.rates_hz[0x2A1] == pytest.approx(200, rel=0.15)
+    assert state.rates_hz[0x2A5] == pytest.approx(200, rel=0.15)
+    assert state.rates_hz[0x261] == pytest.approx(40, rel=0.15)
+    assert state.firmware_version == "S-V1.8-2"
+    assert state.joints_enabled == (True,) * 6 and state.gripper_enabled
+
+
+def test_enable_survives_latency_and_a_firmware_that_wants_two_requests():
+    config = EmulatorConfig(enable_latency_s=0.05, double_enable_after_reset=True)
+    with make_rig(config) as rig:
+        assert rig.emulator.enabled == (True,) * 6
+        walk_to(rig.driver, POSE)
+
+
+def test_enable_timeout_is_one_clear_error_after_capped_backoff():
+    with make_rig(EmulatorConfig(enable_latency_s=60.0), enable=False, enable_timeout_s=0.6) as rig:
+        start = time.monotonic()
+        with pytest.raises(EnableTimeoutError) as err:
+            rig.driver.enable()
+        elapsed = time.monotonic() - start
+        message = str(err.value)
+        assert "\n" not in message
+        assert "did not report enabled within 0.6 s" in message
+        assert "joint_1, joint_2, joint_3, joint_4, joint_5, joint_6" in message  # gripper enables at once
+        assert 0.6 <= elapsed < 1.0
+        requests = [m for m in rig.drain() if m.arbitration_id == 0x471]
+        assert 4 <= len(requests) <= 10  # 10, 20, 40, 80, 160, 200, 200 ms: backed off, not hammered
+
+
+def test_connect_without_an_arm_is_one_clear_error():
+    driver = PiperDriver(DriverConfig(interface="virtual", channel=unique_virtual_channel(), connect_timeout_s=0.2))
+    with pytest.raises(PiperConnectionError, match=r"no PiPER heard on virtual:piper-test-\w+ within 0.2 s"):
+        driver.connect()
+    assert not driver.is_connected
+
+
+def test_unknown_interface_is_one_clear_error():
+    with pytest.raises(PiperConnectionError, match="cannot open CAN bus nosuch:can0"):
+        PiperDriver(DriverConfig(interface="nosuch", channel="can0")).connect()
+    with pytest.raises(PiperConnectionError, match="no CAN channel given"):
+        PiperDriver(DriverConfig(interface="virtual", channel="")).connect()
+
+
+# ---------------------------------------------------------------------------------- watchdog
+@pytest.fixture
+def watchdog_rig():
+    """The driver's default watchdog (3 feedback periods = 15 ms); light feedback keeps the GIL freer."""
+    with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=3 * PERIOD) as rig:
+        yield rig
+
+
+def test_default_watchdog_is_three_feedback_periods():
+    assert DriverConfig().feedback_timeout_s == pytest.approx(3 * PERIOD)
+
+
+def test_watchdog_stays_quiet_while_feedback_flows(watchdog_rig):
+    rig = watchdog_rig
+    for _ in range(50):
+        rig.driver.command(POSE, 0.02)
+        time.sleep(0.02)
+    assert rig.driver.link.stale_error is None
+
+
+@pytest.mark.parametrize("fault", ["drop one joint frame", "bus silence"])
+def test_watchdog_fires_within_three_periods_and_stops_commanding(watchdog_rig, fault):
+    rig = watchdog_rig
+    rig.driver.command(POSE[:1] + (0.0,) * 5)
+    if fault == "bus silence":
+        rig.emulator.silent = True
+    else:
+        rig.emulator.drop_ids = {0x2A6}
+    assert wait_until(lambda: rig.driver.link.stale_error is not None, timeout=1.0)
+    last_joint_frame = min(s.timestamp for s in rig.driver.state().joints)
+    latency = rig.driver.link.stale_at - last_joint_frame
+    # No frame for more than 3 periods trips it; it must trip within 3 periods of the first missing frame.
+    assert 3 * PERIOD < latency <= 4 * PERIOD, f"watchdog latency {latency * 1e3:.1f} ms"
+    assert "stale feedback: no joint feedback" in str(rig.driver.link.stale_error)
+    rig.drain()
+    with pytest.raises(FeedbackStaleError):
+        rig.driver.command(POSE, 0.02)
+    with pytest.raises(FeedbackStaleError):
+        rig.driver.checked_state()
+    time.sleep(0.05)
+    assert motion_frames(rig.drain()) == []
+
+
+# ------------------------------------------------------------------------ clamps and commands
+def test_step_limit_follows_lerobot_max_relative_target(rig):
+    sent = rig.driver.command([2.0, 2.0, -2.0, 1.5, 1.0, 2.0], 0.07)
+    assert sent.joints_rad == pytest.approx((0.2, 0.2, -0.2, 0.2, 0.2, 0.2))
+    assert sent.gripper_m == pytest.approx(0.02)
+    sent = rig.driver.command([0.05, 0.0, 0.0, 0.0, 0.0, -0.1], 0.0)
+    assert sent.joints_rad == pytest.approx((0.05, 0.0, 0.0, 0.0, 0.0, -0.1))
+
+
+def test_soft_limits_clamp_even_without_a_step_limit():
+    with make_rig(max_step_rad=None, max_gripper_step_m=None) as rig:
+        sent = rig.driver.command([9.0, -1.0, 1.0, -9.0, 9.0, -9.0], 0.5)
+        lower, upper = zip(*SDK_SOFT_LIMITS.joints_rad, strict=True)
+        assert sent.joints_rad == (upper[0], 0.0, 0.0, lower[3], upper[4], lower[5])
+        assert sent.gripper_m == 0.07
+
+
+def test_non_finite_targets_are_refused_before_the_bus(rig):
+    rig.drain()
+    with pytest.raises(ValueError, match="joint target 4 must be a finite number"):
+        rig.driver.command([0.0, 0.1, -0.1, math.nan, 0.0, 0.0])
+    with pytest.raises(ValueError, match="gripper target"):
+        rig.driver.command([0.0] * 6, math.inf)
+    with pytest.raises(ValueError, match="expected 6 joint targets"):
+        rig.driver.command([0.0] * 5)
+    time.sleep(0.02)
+    assert motion_frames(rig.drain()) == []
+
+
+def test_frames_of_concurrent_commands_never_interleave(rig):
+    rig.drain()
+
+    def spam(pose):
+        for _ in range(100):
+            rig.driver.command(pose, 0.01)
+
+    threads = [threading.Thread(target=spam, args=(p,)) for p in ((0.1,) + (0.0,) * 5, (0.0,) * 5 + (0.1,))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    time.sleep(0.02)
+    ids = [m.arbitration_id for m in rig.drain() if m.arbitration_id in (0x151, *codec.ID_JOINT_COMMAND, 0x159)]
+    assert len(ids) == 200 * 5
+    assert all(ids[i : i + 5] == [0x151, 0x155, 0x156, 0x157, 0x159] for i in range(0, len(ids), 5))
+
+
+# ------------------------------------------------------------------------------ e-stop / resume
+def test_estop_refuses_motion_and_resume_re_enables(rig):
+    walk_to(rig.driver, POSE)
+    rig.driver.emergency_stop()
+    assert wait_until(lambda: rig.emulator.estopped)
+    with pytest.raises(EmergencyStopError, match="emergency stop engaged"):
+        rig.driver.command(POSE)
+    assert wait_until(lambda: rig.driver.state().status.value.arm_status == codec.ArmStatusCode.EMERGENCY_STOP)
+    with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
+        rig.driver.checked_state()
+    time.sleep(0.2)
+    assert rig.emulator.joints_rad[1] < POSE[1]  # damped, sinking slowly
+    rig.driver.resume()
+    assert rig.emulator.enabled == (True,) * 6 and rig.emulator.ctrl_mode == codec.CtrlMode.CAN
+    assert not rig.driver.estopped and rig.driver.checked_state().faults() == ()
+    walk_to(rig.driver, POSE)
+
+
+# ------------------------------------------------------------------------- firmware faults
+@pytest.mark.parametrize(
+    ("inject", "part", "fault"),
+    [
+        (lambda e: e.inject_fault("collision", 3), "joint_3", "collision protection triggered"),
+        (lambda e: e.inject_fault("comm_error", 2), "joint_2", "communication error"),
+        (lambda e: e.inject_fault("stall", 6), "joint_6", "stall protection triggered"),
+        (lambda e: e.inject_fault("over_current", 7), "gripper", "over-current"),
+        (lambda e: e.set_position(5, math.radians(80)), "joint_5", "angle limit exceeded"),
+    ],
+)
+def test_firmware_error_bits_become_exceptions_naming_joint_and_fault(rig, inject, part, fault):
+    inject(rig.emulator)
+    assert wait_until(lambda: rig.driver.state().faults() != (), timeout=1.0)
+    time.sleep(0.05)  # let every frame kind report it
+    with pytest.raises(FirmwareFaultError) as err:
+        rig.driver.checked_state()
+    assert any(f.part == part and f.fault == fault for f in err.value.faults), err.value.faults
+    assert f"{part}: {fault}" in str(err.value)
+    rig.drain()
+    with pytest.raises(FirmwareFaultError):
+        rig.driver.command(POSE)
+    assert motion_frames(rig.drain()) == []
+
+
+# ---------------------------------------------------------------------------- disconnect policy
+def test_disconnect_hold_keeps_the_arm_enabled_where_it_is(rig):
+    walk_to(rig.driver, POSE)
+    rig.driver.disconnect()
+    time.sleep(0.1)
+    assert rig.emulator.enabled == (True,) * 6
+    assert rig.emulator.joints_rad == pytest.approx(POSE, abs=1e-3)
+
+
+def test_disconnect_rest_walks_home_then_disables():
+    config = EmulatorConfig(disabled_behaviour="drop")
+    with make_rig(config, disconnect_policy=DisconnectPolicy.REST, rest_speed_rad_s=2.0) as rig:
+        walk_to(rig.driver, POSE, 0.03)
+        rig.drain()
+        rig.driver.disconnect()
+        assert rig.emulator.enabled == (False,) * 6 and not rig.emulator.gripper_enabled
+        assert rig.emulator.joints_rad == pytest.approx((0.0,) * 6, abs=0.011)
+        assert rig.emulator.gripper_m == pytest.approx(0.0, abs=0.0021)
+        sent = [codec.decode_command(0x155, m.data) for m in rig.drain() if m.arbitration_id == 0x155]
+        steps = [abs(b.positions_rad[1] - a.positions_rad[1]) for a, b in zip(sent, sent[1:], strict=False)]
+        assert len(sent) > 10 and max(steps) < 0.05  # walked in small steps, did not jump
+
+
+def test_disconnect_rest_holds_when_the_pose_cannot_be_reached():
+    with make_rig(disconnect_policy=DisconnectPolicy.REST, rest_timeout_s=0.3) as rig:
+        walk_to(rig.driver, POSE)
+        rig.emulator.inject_fault("collision", 2)
+        assert wait_until(lambda: rig.driver.state().faults() != ())
+        rig.driver.disconnect()
+        assert rig.emulator.enabled == (True,) * 6  # not dropped
+        assert not rig.driver.is_connected

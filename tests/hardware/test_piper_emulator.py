@@ -1,0 +1,296 @@
+"""The simulated firmware in deterministic ``step`` mode: a host bus sends real frames, the test steps."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Iterator
+
+import can
+import pytest
+from piper_can import codec
+from piper_can.codec import (
+    ArmStatusCode,
+    EmergencyStop,
+    EStopAction,
+    FirmwareQuery,
+    GripperCommand,
+    LimitQuery,
+    MasterSlaveConfig,
+    ModeControl,
+    MotorEnable,
+    decode_feedback,
+    encode,
+    encode_joint_targets,
+)
+from piper_can.emulator import EmulatorConfig, PiperEmulator
+from piper_rig import unique_virtual_channel
+
+PERIOD = 0.005
+
+
+class Host:
+    """A host on the emulator's virtual channel that sends frames and collects decoded feedback."""
+
+    def __init__(self, emulator: PiperEmulator, bus: can.BusABC):
+        self.emulator = emulator
+        self.bus = bus
+
+    def send(self, *messages) -> None:
+        for m in messages:
+            frames = m if isinstance(m, tuple) else (encode(m),)
+            for f in frames:
+                self.bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False))
+
+    def step(self, n: int = 1) -> list[can.Message]:
+        for _ in range(n):
+            self.emulator.step(PERIOD)
+        out = []
+        while (msg := self.bus.recv(timeout=0)) is not None:
+            out.append(msg)
+        return out
+
+    def latest(self, frame_id: int, n: int = 1):
+        frames = [m for m in self.step(n) if m.arbitration_id == frame_id]
+        return decode_feedback(frame_id, frames[-1].data) if frames else None
+
+    def enable_can_mode(self, speed: int = 100, mit: int = 0) -> None:
+        self.send(MotorEnable(7, True), ModeControl(1, 1, speed, mit), GripperCommand(0.0, 1.0, 1))
+        self.step(10)
+
+
+def make_host(config: EmulatorConfig | None = None, channel: str | None = None) -> tuple[Host, list[can.BusABC]]:
+    channel = channel or unique_virtual_channel()
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    host_bus = can.Bus(interface="virtual", channel=channel)
+    return Host(PiperEmulator(emulator_bus, config), host_bus), [emulator_bus, host_bus]
+
+
+@pytest.fixture
+def host() -> Iterator[Host]:
+    h, buses = make_host()
+    yield h
+    for b in buses:
+        b.shutdown()
+
+
+def test_one_step_emits_one_cycle_and_the_rates_are_200_and_40_hz(host):
+    counts = Counter(m.arbitration_id for m in host.step(200))  # one simulated second
+    for frame_id in (0x2A1, *codec.ID_END_POSE, *codec.ID_JOINT_FEEDBACK, 0x2A8, *codec.ID_HIGH_SPEED):
+        assert counts[frame_id] == 200, hex(frame_id)
+    for frame_id in codec.ID_LOW_SPEED:
+        assert counts[frame_id] == 40, hex(frame_id)
+    assert sum(counts.values()) == 3040
+    assert all(len(m.data) == 8 and not m.is_extended_id for m in host.step(5))
+
+
+def test_light_profile_keeps_joints_status_gripper_and_low_speed():
+    host, buses = make_host(EmulatorConfig(profile="light"))
+    ids = {m.arbitration_id for m in host.step(5)}
+    assert ids == {0x2A1, *codec.ID_JOINT_FEEDBACK, 0x2A8, *codec.ID_LOW_SPEED}
+    for b in buses:
+        b.shutdown()
+
+
+def test_initial_state_is_disabled_standby_and_motion_is_ignored(host):
+    status = host.latest(0x2A1)
+    assert (status.ctrl_mode, status.arm_status, status.mode_feed, status.motion_status) == (0, 0, 1, 0)
+    assert not host.latest(0x261, 5).enabled
+    assert not host.latest(0x2A8).enabled
+    host.send(encode_joint_targets([0.3] * 6))  # before 0x151: wrong mode
+    host.send(ModeControl(1, 1, 100))
+    host.send(encode_joint_targets([0.3] * 6))  # before enabling: disabled
+    host.step(20)
+    assert host.emulator.joints_rad == (0.0,) * 6
+    assert host.emulator.ignored["wrong mode"] == 3 and host.emulator.ignored["disabled"] == 3
+
+
+def test_enable_shows_in_the_first_low_speed_frame_after_the_latency():
+    host, buses = make_host(EmulatorConfig(enable_latency_s=0.03))
+    host.step(2)  # 0x26x went out at t = 5 ms; the next ones at 30, 55, 80 ms
+    host.send(MotorEnable(0xFF, True))  # handled at t = 10 ms: enabled from 40 ms on
+    seen = []
+    for _ in range(20):
+        for m in host.step():
+            if m.arbitration_id == 0x263:
+                seen.append((round(host.emulator.time_s, 3), decode_feedback(0x263, m.data).enabled))
+    assert seen[:3] == [(0.03, False), (0.055, True), (0.08, True)]
+    assert host.emulator.enabled == (True,) * 6
+    host.send(MotorEnable(2, False))
+    host.step(10)
+    assert host.emulator.enabled == (True, False, True, True, True, True)
+    for b in buses:
+        b.shutdown()
+
+
+@pytest.mark.parametrize(("speed", "expected_s"), [(100, 1 / 3.0), (50, 2 / 3.0), (20, 1 / 0.6)])
+def test_speed_percent_sets_convergence_time_and_the_reached_flag(host, speed, expected_s):
+    host.enable_can_mode(speed)
+    host.send(encode_joint_targets([1.0, 0.5, -0.5, 0.0, 0.0, 0.0]))
+    cycles = 0
+    while host.latest(0x2A1).motion_status == 1:
+        cycles += 1
+        assert cycles < 1000
+    assert cycles * PERIOD == pytest.approx(expected_s, abs=2 * PERIOD)
+    assert host.emulator.joints_rad[0] == pytest.approx(1.0, abs=1e-5)  # 0.001° quantisation
+    joints = host.latest(0x2A5)
+    assert joints.positions_rad == pytest.approx((1.0, 0.5), abs=1e-5)
+    speed_info = [decode_feedback(0x251, m.data) for m in host.step() if m.arbitration_id == 0x251][0]
+    assert speed_info.speed_rad_s == 0.0
+
+
+def test_high_follow_tracks_fast_without_planning(host):
+    host.enable_can_mode(speed=10, mit=0xAD)  # position mode at 10 % would need 0.67 s for 0.2 rad
+    host.send(encode_joint_targets([0.2, 0.2, -0.2, 0.0, 0.0, 0.0]))
+    host.step(40)
+    assert host.emulator.joints_rad[0] == pytest.approx(0.2, abs=1e-3)
+
+
+def test_out_of_range_targets_are_clamped_by_default(host):
+    host.enable_can_mode()
+    host.send(encode_joint_targets([3.0, -1.0, 1.0, 0.0, 0.0, 0.0]))
+    host.step(300)
+    assert host.emulator.joints_rad[:3] == pytest.approx((math.radians(150), 0.0, 0.0))
+    assert host.latest(0x2A1).arm_status == 0
+
+
+def test_reject_policy_keeps_the_pose_and_reports_status_4_until_a_valid_target():
+    host, buses = make_host(EmulatorConfig(limit_policy="reject"))
+    host.enable_can_mode()
+    host.send(encode_joint_targets([3.0, 0.1, -0.1, 0.0, 0.0, 0.0]))
+    assert host.latest(0x2A1, 5).arm_status == ArmStatusCode.TARGET_EXCEEDS_LIMIT
+    # pairs apply on their own: the rejected (J1, J2) pair keeps its pose, (J3, J4) moves
+    assert host.emulator.joints_rad[:2] == (0.0, 0.0) and host.emulator.joints_rad[2] < 0
+    assert host.emulator.ignored["out of range"] == 1
+    host.send(encode_joint_targets([0.1, 0.1, -0.1, 0.0, 0.0, 0.0]))
+    assert host.latest(0x2A1, 100).arm_status == ArmStatusCode.NORMAL
+    assert host.emulator.joints_rad[0] == pytest.approx(0.1, abs=1e-5)
+    for b in buses:
+        b.shutdown()
+
+
+def test_a_joint_outside_its_limit_sets_its_error_bit(host):
+    host.emulator.set_position(5, math.radians(80))
+    assert host.latest(0x2A1).angle_limit_joints == (5,)
+
+
+def test_gripper_units_range_effort_and_zero(host):
+    host.enable_can_mode()
+    host.send(GripperCommand(0.05, 2.0, 0x01))
+    fb = host.latest(0x2A8, 100)
+    assert fb.opening_m == pytest.approx(0.05) and fb.effort_nm == pytest.approx(2.0) and fb.enabled
+    host.send(GripperCommand(0.5, 1.0, 0x01))  # beyond the 70 mm stroke
+    assert host.latest(0x2A8, 100).opening_m == pytest.approx(0.07)
+    host.send(GripperCommand(0.07, 1.0, 0x01, set_zero=True))
+    assert host.latest(0x2A8).opening_m == pytest.approx(0.0)
+    host.send(GripperCommand(0.0, 1.0, 0x00))
+    assert not host.latest(0x2A8).enabled
+
+
+def test_strict_mode_rejects_excess_effort_and_counts_bad_frames():
+    host, buses = make_host(EmulatorConfig(strict=True))
+    host.enable_can_mode()
+    host.bus.send(can.Message(arbitration_id=0x159, data=bytes.fromhex("0000c350157c0100"), is_extended_id=False))
+    host.bus.send(can.Message(arbitration_id=0x155, data=bytes(4), is_extended_id=False))
+    host.bus.send(can.Message(arbitration_id=0x155, data=bytes(8), is_extended_id=True))
+    host.bus.send(can.Message(arbitration_id=0x3FF, data=bytes(8), is_extended_id=False))
+    host.step(5)
+    ignored = host.emulator.ignored
+    assert ignored["out of range"] == 1 and ignored["wrong DLC or extended ID"] == 2 and ignored["unknown ID"] == 1
+    for b in buses:
+        b.shutdown()
+
+
+def test_estop_damps_and_reset_disables_into_standby(host):
+    host.enable_can_mode()
+    host.send(encode_joint_targets([0.0, 1.0, -1.0, 0.0, 0.0, 0.0]))
+    host.step(200)
+    host.send(EmergencyStop(EStopAction.STOP))
+    assert host.latest(0x2A1).arm_status == ArmStatusCode.EMERGENCY_STOP
+    host.send(encode_joint_targets([0.0, 1.5, -1.0, 0.0, 0.0, 0.0]))
+    host.step(100)  # half a second: sinks slowly toward rest, ignores motion
+    assert host.emulator.ignored["e-stop"] == 3
+    assert 0.9 < host.emulator.joints_rad[1] < 1.0
+    host.send(EmergencyStop(EStopAction.RESUME))
+    status = host.latest(0x2A1)
+    assert (status.arm_status, status.ctrl_mode) == (0, 0)
+    assert not host.latest(0x262, 5).enabled and host.emulator.enabled == (False,) * 6
+
+
+def test_limit_and_firmware_queries_are_answered(host):
+    host.send(*(LimitQuery(m, 1) for m in range(1, 7)), LimitQuery(2, 2), FirmwareQuery())
+    replies = host.step()
+    limits = [decode_feedback(0x473, m.data) for m in replies if m.arbitration_id == 0x473]
+    assert [lim.motor for lim in limits] == [1, 2, 3, 4, 5, 6]
+    assert limits[1].max_angle_rad == pytest.approx(math.pi) and limits[1].min_angle_rad == 0.0
+    accel = [decode_feedback(0x47C, m.data) for m in replies if m.arbitration_id == 0x47C]
+    assert accel == [codec.MotorAccelLimit(2, 5.0)]
+    text = b"".join(m.data for m in replies if m.arbitration_id == 0x4AF)
+    assert len(text) == 88 and codec.parse_firmware_version(text) == "S-V1.8-2"
+
+
+def test_leader_drives_a_follower_on_the_same_channel():
+    channel = unique_virtual_channel()
+    follower, buses = make_host(EmulatorConfig(start_enabled=True), channel=channel)
+    leader_bus = can.Bus(interface="virtual", channel=channel)
+    leader = PiperEmulator(leader_bus, EmulatorConfig(role="leader"))
+    leader.leader_pose = ((0.3, 0.5, -0.4, 0.1, 0.2, -0.3), 0.04)
+    for _ in range(100):
+        leader.step(PERIOD)
+        follower.emulator.step(PERIOD)
+    ids = {m.arbitration_id for m in follower.step()}
+    assert {0x151, *codec.ID_JOINT_COMMAND, 0x159} <= ids and 0x2A5 in ids  # leader frames, follower feedback
+    assert follower.emulator.joints_rad == pytest.approx((0.3, 0.5, -0.4, 0.1, 0.2, -0.3), abs=1e-5)
+    assert follower.emulator.gripper_m == pytest.approx(0.04)
+    assert follower.emulator.mit_mode == 0xAD
+    for b in [*buses, leader_bus]:
+        b.shutdown()
+
+
+def test_leader_role_ignores_commands_and_needs_a_power_cycle_to_leave(host):
+    host.send(MasterSlaveConfig(0xFA))
+    host.step()
+    assert host.emulator.role == "leader"
+    host.send(MotorEnable(7, True))
+    host.send(MasterSlaveConfig(0xFC))
+    host.step(10)
+    assert host.emulator.role == "leader" and host.emulator.ignored["leader ignores commands"] == 1
+    host.emulator.power_cycle()
+    assert host.emulator.role == "follower"
+
+
+def test_fault_injection_drop_freeze_silence_and_error_bits(host):
+    host.enable_can_mode()
+    host.emulator.drop_ids = {0x2A6}
+    assert 0x2A6 not in {m.arbitration_id for m in host.step(5)}
+    host.emulator.drop_ids = set()
+    host.emulator.freeze_feedback()
+    host.send(encode_joint_targets([0.5, 0.5, -0.5, 0.0, 0.0, 0.0]))
+    assert host.latest(0x2A5, 50).positions_rad == (0.0, 0.0)  # frozen values...
+    assert host.emulator.joints_rad[0] > 0.0  # ...while the arm moves
+    host.emulator.freeze_feedback(False)
+    host.emulator.silent = True
+    assert host.step(10) == []
+    host.emulator.silent = False
+    host.emulator.inject_fault("collision", 3)
+    host.emulator.inject_fault("comm_error", 2)
+    host.emulator.inject_fault("over_current", 7)
+    status = host.latest(0x2A1, 5)
+    assert status.comm_error_joints == (2,) and status.arm_status == ArmStatusCode.JOINT_COMM_ERROR
+    assert host.latest(0x263, 5).faults == ("collision protection triggered",)
+    assert host.latest(0x2A8).faults == ("over-current",)
+    host.send(EmergencyStop(EStopAction.RESUME))  # reset clears the errors
+    assert host.latest(0x2A1).comm_error_mask == 0 and host.latest(0x263, 5).faults == ()
+
+
+def test_two_arms_on_two_channels_do_not_mix():
+    left, left_buses = make_host()
+    right, right_buses = make_host()
+    left.enable_can_mode()
+    right.enable_can_mode()
+    left.send(encode_joint_targets([0.2, 0.2, -0.2, 0.0, 0.0, 0.0]))
+    left.step(100)
+    right.step(100)
+    assert left.emulator.joints_rad[0] == pytest.approx(0.2, abs=1e-5) and right.emulator.joints_rad[0] == 0.0
+    for b in [*left_buses, *right_buses]:
+        b.shutdown()
