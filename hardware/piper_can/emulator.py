@@ -523,8 +523,9 @@ class PiperEmulator:
         for p in due:
             for j in p.joints:
                 joint = self._joints[j - 1]
-                joint.enabled = p.enable
-                joint.target = joint.position
+                if joint.enabled != p.enable:  # a repeated enable keeps the current target
+                    joint.enabled = p.enable
+                    joint.target = joint.position
 
     def _move_joints(self, dt: float) -> None:
         cfg = self.config
