@@ -154,6 +154,7 @@ class EnvPool:
             self.vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)
         self.vec.reset(options={"park": True})  # every slot starts parked; jobs reset slots individually
         self._tasks: list[str | None] = [None] * num_envs  # the task each slot ran last
+        self._parked = np.ones(num_envs, dtype=bool)  # persists across runs: a slot that ended must be parked
 
     def _reset(self, slots: list[int], options: dict[str, Any], seeds: list[int | None] | None = None) -> dict:
         mask = np.zeros(self.num_envs, dtype=bool)
@@ -177,7 +178,7 @@ class EnvPool:
         scheduler = _Scheduler(jobs)
         running: list[tuple[int, Job] | None] = [None] * self.num_envs
         recorders: list[_Recorder | None] = [None] * self.num_envs
-        parked = np.ones(self.num_envs, dtype=bool)
+        parked = self._parked
         obs: dict[str, Any] = {}
         bar = tqdm(total=len(jobs), desc=progress, disable=progress is None, leave=False)
         step = 0

@@ -1,0 +1,312 @@
+"""``lerobot-cso demos``: scripted MetaWorld demonstrations → a LeRobotDataset v3.
+
+Episode ``i`` of a task starts from initial state ``seeds.DEMO.start + i`` and is driven by the task's scripted
+expert plus Gaussian action noise (σ = ``noise_std``, QueST: 0.2) drawn from a generator seeded by
+``(seed, task, init_seed)``; it ends at the first success or after ``max_steps``. The same config therefore
+gives the same dataset, bit for bit, however the work is split over envs or interrupted. With
+``keep_failed=false`` failed episodes are dropped and the next seeds are tried until each task has
+``episodes_per_task`` successes.
+
+Features: ``observation.state`` (39, float32), ``action`` (4, float32, as executed), optional
+``observation.images.<camera>`` (128×128 ``image``), ``task`` = the task's language description, and per-frame
+episode metadata that LeRobot's tools carry along: ``metaworld.task`` (task name), ``metaworld.init_seed``
+and ``metaworld.success`` (the episode's outcome). The episode length is LeRobot's own ``length``. The
+generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other
+settings, or anything else, is refused.
+
+Durability: every finished episode is written at once, atomically, to ``<output_dir>.partial/``; the
+dataset is assembled from there when all episodes exist (appended with ``LeRobotDataset.resume`` when
+topping up an existing dataset) and swapped into place. A killed run restarts where it stopped: episodes
+already staged or already in the dataset (matched by task and initial-state seed) are never rerun or
+duplicated.
+"""
+
+import json
+import os
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from datasets.utils import logging as hf_logging
+from lerobot.configs import parser
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from tqdm import tqdm
+
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.config import parse_cameras
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.errors import UsageError
+
+SPEC_FILE = "meta/cso_demos.json"
+TASK_KEY = "metaworld.task"
+SEED_KEY = "metaworld.init_seed"
+SUCCESS_KEY = "metaworld.success"
+MAX_ATTEMPTS_PER_EPISODE = 20  # with keep_failed=false: give up on a task after this many tries per episode
+
+
+@dataclass
+class DemosConfig:
+    """Settings of ``lerobot-cso demos`` (``--tasks=MT10 --episodes_per_task=10 --output_dir=...``)."""
+
+    # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test.
+    tasks: str = "ML45-train"
+    episodes_per_task: int = 100
+    noise_std: float = 0.2
+    seed: int = 0
+    keep_failed: bool = True
+    # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU).
+    cameras: str = ""
+    image_size: int = IMAGE_SIZE
+    max_steps: int = HORIZON
+    num_envs: int = 4
+    output_dir: Path = Path("outputs/demos/metaworld")
+    repo_id: str = "local/metaworld_demos"
+
+    def spec(self) -> dict[str, Any]:
+        """The settings that determine episode content: a dataset only ever grows under one spec."""
+        return {
+            "noise_std": self.noise_std,
+            "seed": self.seed,
+            "keep_failed": self.keep_failed,
+            "cameras": list(parse_cameras(self.cameras)),
+            "image_size": self.image_size,
+            "max_steps": self.max_steps,
+            "fps": FPS,
+        }
+
+    def validate(self) -> list[str]:
+        """Check every setting; returns the resolved task list. Raises ``UsageError``."""
+        try:
+            tasks = resolve_tasks(self.tasks)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        if self.episodes_per_task <= 0:
+            raise UsageError(f"episodes_per_task must be > 0, got {self.episodes_per_task}")
+        if self.noise_std < 0:
+            raise UsageError(f"noise_std must be >= 0, got {self.noise_std}")
+        if not 1 <= self.max_steps <= HORIZON:
+            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
+        if self.num_envs < 1:
+            raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
+        unknown = [c for c in parse_cameras(self.cameras) if c not in CAMERAS]
+        if unknown:
+            raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
+        return tasks
+
+
+def dataset_features(cameras: Iterable[str], image_size: int) -> dict[str, dict]:
+    """LeRobotDataset features of a demo dataset."""
+    features: dict[str, dict] = {
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
+        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": ["dx", "dy", "dz", "gripper"]},
+        TASK_KEY: {"dtype": "string", "shape": (1,), "names": None},
+        SEED_KEY: {"dtype": "int64", "shape": (1,), "names": None},
+        SUCCESS_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+    }
+    for cam in cameras:
+        features[f"observation.images.{cam}"] = {
+            "dtype": "image",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channel"],
+        }
+    return features
+
+
+class _Staging:
+    """``<output_dir>.partial/``: one atomically written ``.npz`` per finished episode, plus the spec."""
+
+    def __init__(self, output_dir: Path, spec: dict[str, Any]) -> None:
+        self.root = output_dir.with_name(output_dir.name + ".partial")
+        self.episodes = self.root / "episodes"
+        spec_path = self.root / "spec.json"
+        if spec_path.exists() and json.loads(spec_path.read_text()) != spec:
+            raise UsageError(
+                f"{self.root} holds an interrupted generation with different settings "
+                f"({json.loads(spec_path.read_text())}); delete it or choose another --output_dir"
+            )
+        self.episodes.mkdir(parents=True, exist_ok=True)
+        _write_atomic(spec_path, json.dumps(spec, indent=2).encode())
+
+    def path(self, task: str, init_seed: int) -> Path:
+        return self.episodes / task / f"{init_seed:07d}.npz"
+
+    def done(self) -> dict[tuple[str, int], bool]:
+        """(task, init_seed) → success of every staged episode."""
+        out = {}
+        for path in self.episodes.glob("*/*.npz"):
+            with np.load(path) as data:
+                out[(path.parent.name, int(path.stem))] = bool(data["success"])
+        return out
+
+    def save(self, task: str, init_seed: int, success: bool, arrays: dict[str, np.ndarray]) -> None:
+        path = self.path(task, init_seed)
+        path.parent.mkdir(exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, success=np.array(success), **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+
+    def load(self, task: str, init_seed: int) -> dict[str, np.ndarray]:
+        with np.load(self.path(task, init_seed)) as data:
+            return dict(data)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
+    """(task, init_seed) → success of the episodes already in ``output_dir``; refuses a different dataset."""
+    out = cfg.output_dir
+    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return {}
+    spec_path = out / SPEC_FILE
+    if not spec_path.is_file():
+        raise UsageError(f"{out} exists and is not a demo dataset of lerobot-cso; choose another --output_dir")
+    spec = json.loads(spec_path.read_text())
+    if spec != cfg.spec():
+        diff = {k: (spec.get(k), v) for k, v in cfg.spec().items() if spec.get(k) != v}
+        raise UsageError(
+            f"{out} holds a different dataset (setting: (on disk, requested) = {diff}); choose another --output_dir"
+        )
+    ds = LeRobotDataset(cfg.repo_id, root=out, video_backend="pyav")
+    table = ds.hf_dataset.select_columns(["episode_index", TASK_KEY, SEED_KEY, SUCCESS_KEY]).to_pandas()
+    firsts = table.drop_duplicates("episode_index")
+    return {
+        (task, int(np.asarray(seed).reshape(-1)[0])): bool(np.asarray(ok).reshape(-1)[0])
+        for task, seed, ok in zip(firsts[TASK_KEY], firsts[SEED_KEY], firsts[SUCCESS_KEY], strict=True)
+    }
+
+
+def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[str, int], bool]) -> list[tuple]:
+    """The next (task, init_seed) to run: per task, the lowest demo seeds not run yet, enough to fill it."""
+    jobs = []
+    for task in tasks:
+        tried = sorted(s for t, s in known if t == task)
+        kept = sum(1 for s in tried if keep_failed or known[(task, s)])
+        missing = per_task - kept
+        if missing <= 0:
+            continue
+        if not keep_failed and len(tried) >= MAX_ATTEMPTS_PER_EPISODE * per_task:
+            raise UsageError(
+                f"the {task} expert succeeded in only {kept} of {len(tried)} episodes; "
+                f"use --keep_failed=true or fewer --episodes_per_task"
+            )
+        candidates = (s for s in seeds.DEMO if (task, s) not in known)
+        jobs.extend((task, next(candidates)) for _ in range(missing))
+    return jobs
+
+
+def _generate(cfg: DemosConfig, tasks: list[str], staging: _Staging, known: dict[tuple[str, int], bool]) -> None:
+    """Run episodes until every task has its count (staged + in the dataset); each one is staged at once."""
+    from lerobot_cso.rollout.expert import ExpertController
+    from lerobot_cso.rollout.pool import EnvPool, Job
+
+    cameras = parse_cameras(cfg.cameras)
+    with EnvPool(cfg.num_envs, cameras, cfg.image_size, cfg.max_steps) as pool:
+        while jobs := _plan(tasks, cfg.episodes_per_task, cfg.keep_failed, known):
+            controller = ExpertController(cfg.num_envs, cfg.noise_std, cfg.seed)
+            for _, trace in pool.run([Job(t, s) for t, s in jobs], controller, progress="demo episodes"):
+                arrays = {"states": trace.states, "actions": trace.actions}
+                arrays.update({f"image_{cam}": frames for cam, frames in trace.images.items()})
+                staging.save(trace.job.task, trace.job.init_seed, trace.success, arrays)
+                known[(trace.job.task, trace.job.init_seed)] = trace.success
+
+
+def _assemble(cfg: DemosConfig, tasks: list[str], staging: _Staging, in_dataset: set[tuple[str, int]]) -> int:
+    """Write the staged episodes (task order, then seed order) into the dataset; returns how many."""
+    staged = staging.done()
+    keys = [
+        (task, s)
+        for task in tasks
+        for s in sorted(s for t, s in staged if t == task)
+        if (task, s) not in in_dataset and (cfg.keep_failed or staged[(task, s)])
+    ]
+    if not keys:
+        return 0
+    cameras = parse_cameras(cfg.cameras)
+    work = staging.root / "dataset"
+    if work.exists():
+        shutil.rmtree(work)  # an assembly that was interrupted: redo it
+    if in_dataset:
+        shutil.copytree(cfg.output_dir, work)
+        ds = LeRobotDataset.resume(cfg.repo_id, root=work, video_backend="pyav")
+    else:
+        features = dataset_features(cameras, cfg.image_size)
+        ds = LeRobotDataset.create(
+            cfg.repo_id, FPS, features, root=work, robot_type="sawyer", use_videos=False, video_backend="pyav"
+        )
+    bars_were_enabled = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()  # one "Map" bar per saved episode otherwise
+    try:
+        for task, init_seed in tqdm(keys, desc="writing dataset", leave=False):
+            ep = staging.load(task, init_seed)
+            meta = {
+                TASK_KEY: task,
+                SEED_KEY: np.array([init_seed], dtype=np.int64),
+                SUCCESS_KEY: np.array([bool(ep["success"])]),
+            }
+            for t in range(len(ep["actions"])):
+                frame = {
+                    "observation.state": ep["states"][t],
+                    "action": ep["actions"][t],
+                    "task": task_description(task),
+                }
+                frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
+                ds.add_frame({**frame, **meta})
+            ds.save_episode()
+        ds.finalize()
+    finally:
+        if bars_were_enabled:
+            hf_logging.enable_progress_bar()
+    _write_atomic(work / SPEC_FILE, json.dumps(cfg.spec(), indent=2).encode())
+    previous = staging.root / "previous"
+    if cfg.output_dir.exists():
+        os.replace(cfg.output_dir, previous)
+    os.replace(work, cfg.output_dir)
+    return len(keys)
+
+
+def generate_demos(cfg: DemosConfig) -> dict[str, Any]:
+    """Generate (or resume / top up) the demo dataset; returns a summary per task."""
+    tasks = cfg.validate()
+    staging_root = cfg.output_dir.with_name(cfg.output_dir.name + ".partial")
+    if not cfg.output_dir.exists() and (staging_root / "previous").exists():
+        os.replace(staging_root / "previous", cfg.output_dir)  # killed between the two renames of a swap
+    in_dataset = existing_episodes(cfg)
+    staging = _Staging(cfg.output_dir, cfg.spec())
+    known = {**staging.done(), **in_dataset}
+    _generate(cfg, tasks, staging, known)
+    written = _assemble(cfg, tasks, staging, set(in_dataset))
+    shutil.rmtree(staging.root)
+    final = existing_episodes(cfg)
+    return {
+        "output_dir": str(cfg.output_dir),
+        "new_episodes": written,
+        "total_episodes": len(final),
+        "tasks": {
+            task: {
+                "episodes": sum(1 for t, _ in final if t == task),
+                # over every episode run for the task in this session and kept before (failures included)
+                "expert_success_rate": float(np.mean([ok for (t, _), ok in known.items() if t == task])),
+            }
+            for task in tasks
+        },
+    }
+
+
+@parser.wrap()
+def demos_main(cfg: DemosConfig) -> None:
+    """Entry point of ``lerobot-cso demos``."""
+    summary = generate_demos(cfg)
+    print(f"{summary['output_dir']}: {summary['total_episodes']} episodes ({summary['new_episodes']} new)")
+    for task, info in summary["tasks"].items():
+        print(f"  {task:32s} {info['episodes']:5d} episodes, expert success {info['expert_success_rate']:.0%}")

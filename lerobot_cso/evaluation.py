@@ -1,0 +1,218 @@
+"""``lerobot-cso eval``: per-task success rates of a policy on MetaWorld, mean ± std over seeds.
+
+Evaluation seed ``s`` fixes both the sampling RNG and a block of initial states of its own:
+episode ``i`` of a task starts from ``seeds.EVAL.start + s * seeds.EVAL_BLOCK + i``. The states are therefore
+fixed per seed (the same for every checkpoint), disjoint between seeds, and disjoint from every demo and
+training-rollout state (:mod:`lerobot_cso.envs.seeds`). The spread over seeds covers initial states and
+sampling, so it is meaningful even with greedy decoding.
+
+Default sampling is QueST's: top-k = 5 at temperature 1. The std is the sample std over seeds (ddof=1;
+undefined, reported as null, with a single seed). Outputs: a markdown table on stdout, and ``eval.json``,
+``eval.csv`` and ``eval.png`` (bar chart) in ``output_dir``.
+"""
+
+import csv
+import datetime as dt
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lerobot.configs import parser
+from lerobot.configs.policies import PreTrainedConfig
+
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.constants import HORIZON
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.errors import UsageError
+
+
+@dataclass
+class EvalConfig:
+    """Settings of ``lerobot-cso eval`` (``--policy.path=... --tasks=MT10 --seeds=0,1,2``)."""
+
+    policy: PreTrainedConfig | None = None
+    # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test.
+    tasks: str = "ML45-train"
+    episodes_per_task: int = 50
+    # Comma list of evaluation seeds; each picks its own block of initial states and sampling RNG.
+    seeds: str = "0"
+    temperature: float = 1.0
+    top_k: int | None = 5
+    greedy: bool = False
+    num_envs: int = 16
+    vectorization: str = "sync"
+    max_steps: int = HORIZON
+    output_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        policy_path = parser.get_path_arg("policy")
+        if policy_path:
+            if not (Path(policy_path) / "config.json").is_file():
+                raise UsageError(f"--policy.path={policy_path} is not a saved policy (no config.json there)")
+            overrides = parser.get_yaml_overrides("policy") + (parser.get_cli_overrides("policy") or [])
+            self.policy = PreTrainedConfig.from_pretrained(policy_path, cli_overrides=overrides)
+            self.policy.pretrained_path = Path(policy_path)
+        if self.output_dir is None:
+            self.output_dir = Path("outputs/eval/cso") / f"{dt.datetime.now():%Y-%m-%d_%H-%M-%S}"
+
+    @classmethod
+    def __get_path_fields__(cls) -> list[str]:
+        """Lets ``--policy.path=dir`` load the policy config, as in LeRobot's ``EvalPipelineConfig``."""
+        return ["policy"]
+
+    def eval_seeds(self) -> list[int]:
+        try:
+            values = [int(s) for s in self.seeds.split(",") if s.strip()]
+        except ValueError:
+            raise UsageError(f"seeds must be a comma list of integers, got '{self.seeds}'") from None
+        n_blocks = len(seeds.EVAL) // seeds.EVAL_BLOCK
+        if not values or any(not 0 <= s < n_blocks for s in values) or len(set(values)) != len(values):
+            raise UsageError(f"seeds must be distinct integers in [0, {n_blocks}), got '{self.seeds}'")
+        return values
+
+    def validate(self) -> list[str]:
+        """Check every setting; returns the resolved task list. Raises ``UsageError``."""
+        if self.policy is None or self.policy.pretrained_path is None:
+            raise UsageError("--policy.path is required (a directory written by save_pretrained)")
+        try:
+            tasks = resolve_tasks(self.tasks)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        if not 0 < self.episodes_per_task <= seeds.EVAL_BLOCK:
+            raise UsageError(f"episodes_per_task must be in [1, {seeds.EVAL_BLOCK}], got {self.episodes_per_task}")
+        if self.num_envs < 1:
+            raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
+        if self.vectorization not in ("sync", "async"):
+            raise UsageError(f"vectorization must be 'sync' or 'async', got '{self.vectorization}'")
+        if not 1 <= self.max_steps <= HORIZON:
+            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
+        if self.temperature <= 0 or (self.top_k is not None and self.top_k < 1):
+            raise UsageError("temperature must be > 0 and top_k >= 1 (or null)")
+        known = getattr(self.policy, "tasks", None)
+        unknown = [t for t in tasks if known and task_description(t) not in known]
+        if unknown:
+            raise UsageError(f"the policy was not trained on {', '.join(unknown)}; it knows: {', '.join(known)}")
+        self.eval_seeds()
+        return tasks
+
+
+def _stats(values: list[float]) -> tuple[float, float | None]:
+    mean = float(np.mean(values))
+    return mean, (float(np.std(values, ddof=1)) if len(values) > 1 else None)
+
+
+def summarize(success: dict[str, dict[int, float]]) -> dict[str, Any]:
+    """Per task and overall (mean over tasks, per seed): success rates per seed, mean and std over seeds."""
+    seed_list = sorted(next(iter(success.values())))
+    rows = {}
+    for task, per_seed in success.items():
+        mean, std = _stats([per_seed[s] for s in seed_list])
+        rows[task] = {"per_seed": {str(s): per_seed[s] for s in seed_list}, "mean": mean, "std": std}
+    overall_per_seed = {s: float(np.mean([success[t][s] for t in success])) for s in seed_list}
+    mean, std = _stats(list(overall_per_seed.values()))
+    rows["overall"] = {"per_seed": {str(s): v for s, v in overall_per_seed.items()}, "mean": mean, "std": std}
+    return rows
+
+
+def markdown_table(rows: dict[str, Any]) -> str:
+    """Success rates in % as a markdown table: one column per seed, then mean ± std."""
+    seed_names = list(next(iter(rows.values()))["per_seed"])
+    lines = [
+        "| task | " + " | ".join(f"seed {s}" for s in seed_names) + " | mean ± std |",
+        "|---|" + "---:|" * (len(seed_names) + 1),
+    ]
+    for task, row in rows.items():
+        cells = [f"{100 * v:.1f}" for v in row["per_seed"].values()]
+        spread = "" if row["std"] is None else f" ± {100 * row['std']:.1f}"
+        name = f"**{task}**" if task == "overall" else task
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {100 * row['mean']:.1f}{spread} |")
+    return "\n".join(lines)
+
+
+def write_outputs(output_dir: Path, rows: dict[str, Any], record: dict[str, Any]) -> None:
+    """``eval.json`` (everything), ``eval.csv`` (the table) and ``eval.png`` (bar chart with std error bars)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    output_dir.mkdir(parents=True, exist_ok=True)
+    (output_dir / "eval.json").write_text(json.dumps({**record, "success_rate": rows}, indent=2))
+    seed_names = list(next(iter(rows.values()))["per_seed"])
+    with open(output_dir / "eval.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["task", *(f"seed_{s}" for s in seed_names), "mean", "std"])
+        for task, row in rows.items():
+            std = "" if row["std"] is None else row["std"]
+            writer.writerow([task, *row["per_seed"].values(), row["mean"], std])
+    names = list(rows)
+    means = [100 * rows[n]["mean"] for n in names]
+    errors = [0.0 if rows[n]["std"] is None else 100 * rows[n]["std"] for n in names]
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.35 * len(names) + 2), 4.5))
+    colors = ["tab:orange" if n == "overall" else "tab:blue" for n in names]
+    ax.bar(names, means, yerr=errors, capsize=3, color=colors)
+    ax.set_ylabel("success rate (%)")
+    ax.set_ylim(0, 105)
+    ax.set_title(f"{record['policy_path']} — {len(seed_names)} seed(s) × {record['episodes_per_task']} episodes")
+    ax.tick_params(axis="x", labelrotation=90)
+    fig.tight_layout()
+    fig.savefig(output_dir / "eval.png", dpi=100)
+    plt.close(fig)
+
+
+def evaluate(cfg: EvalConfig) -> dict[str, Any]:
+    """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+
+    tasks = cfg.validate()
+    eval_seed_list = cfg.eval_seeds()
+    path = cfg.policy.pretrained_path
+    policy = get_policy_class(cfg.policy.type).from_pretrained(path, config=cfg.policy)
+    device = str(policy.config.device)
+    pre, post = make_pre_post_processors(
+        policy.config, pretrained_path=str(path), preprocessor_overrides={"device_processor": {"device": device}}
+    )
+    sampling = Sampling(cfg.temperature, cfg.top_k, cfg.greedy)
+    success: dict[str, dict[int, float]] = {task: {} for task in tasks}
+    episodes, throughput = [], []
+    with RolloutEngine(
+        policy, pre, post, cfg.num_envs, max_steps=cfg.max_steps, vectorization=cfg.vectorization
+    ) as engine:
+        for s in eval_seed_list:
+            states = [(task, init) for task in tasks for init in seeds.eval_seeds(cfg.episodes_per_task, s)]
+            result = engine.rollout(states, k=1, sampling=sampling, seed=s, progress=f"eval seed {s}")
+            for task in tasks:
+                success[task][s] = float(np.mean([e.success for e in result.episodes if e.task == task]))
+            episodes += [
+                {"seed": s, "task": e.task, "init_seed": e.init_seed, "success": e.success, "length": e.length}
+                for e in result.episodes
+            ]
+            throughput.append(
+                {"seed": s, "env_steps_per_s": result.env_steps_per_s, "decisions_per_s": result.decisions_per_s}
+            )
+    rows = summarize(success)
+    record = {
+        "policy_path": str(path),
+        "tasks": tasks,
+        "episodes_per_task": cfg.episodes_per_task,
+        "seeds": eval_seed_list,
+        "sampling": asdict(sampling),
+        "max_steps": cfg.max_steps,
+        "initial_states": f"seeds.EVAL.start + seed * {seeds.EVAL_BLOCK} + episode (EVAL = {seeds.EVAL})",
+        "throughput": throughput,
+        "episodes": episodes,
+    }
+    write_outputs(cfg.output_dir, rows, record)
+    return rows
+
+
+@parser.wrap()
+def eval_main(cfg: EvalConfig) -> None:
+    """Entry point of ``lerobot-cso eval``."""
+    rows = evaluate(cfg)
+    print(markdown_table(rows))
+    print(f"\nwrote {cfg.output_dir}/eval.json, eval.csv, eval.png")
