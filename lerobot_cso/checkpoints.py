@@ -1,0 +1,72 @@
+"""Loading and saving cso checkpoints (policy + processors) the LeRobot way, and atomic file writes."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from lerobot.configs import parser
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.policies.factory import make_pre_post_processors
+
+from lerobot_cso.errors import UsageError
+from lerobot_cso.policy import CSOPolicy
+
+
+def policy_config_from_cli(field: str = "policy") -> PreTrainedConfig | None:
+    """``--policy.path=DIR [--policy.x=y]`` → the saved config with CLI overrides (as LeRobot's eval does)."""
+    path = parser.get_path_arg(field)
+    if not path:
+        return None
+    if not (Path(path) / "config.json").is_file():
+        raise UsageError(f"--{field}.path={path} is not a saved policy (no config.json there)")
+    overrides = parser.get_yaml_overrides(field) + (parser.get_cli_overrides(field) or [])
+    config = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides)
+    config.pretrained_path = Path(path)
+    return config
+
+
+def load_policy(path: str | Path, config: PreTrainedConfig | None = None) -> tuple[CSOPolicy, Any, Any]:
+    """A saved cso policy with its pre/post-processors (normalisation statistics of its training data)."""
+    policy = CSOPolicy.from_pretrained(path, config=config)
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    return policy, pre, post
+
+
+def save_checkpoint(directory: Path, policy: CSOPolicy, preprocessor: Any, postprocessor: Any) -> None:
+    """Write policy + processors to ``directory`` atomically (a temporary sibling renamed into place)."""
+    tmp = directory.with_name(directory.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    preprocessor.save_pretrained(tmp)
+    postprocessor.save_pretrained(tmp)
+    replace_dir(tmp, directory)
+
+
+def replace_dir(src: Path, dst: Path) -> None:
+    """Move directory ``src`` to ``dst``, replacing it; a crash leaves either the old or the new one."""
+    old = dst.with_name(dst.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if dst.exists():
+        os.replace(dst, old)
+    os.replace(src, dst)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def restore_interrupted_replace(dst: Path) -> None:
+    """Undo a :func:`replace_dir` killed between its two renames."""
+    old = dst.with_name(dst.name + ".old")
+    if not dst.exists() and old.exists():
+        os.replace(old, dst)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write a file so that readers see the old content or the new, never a torn one."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

@@ -1,0 +1,312 @@
+"""Stage 2 of CSO, SPO (Algorithm 1 lines 12–22, Eq. 7–9, App. E.2): ``lerobot-cso spo``.
+
+Each of ``iterations`` (M) iterations: π_old ← π; collect ``groups_per_iteration`` (B) groups of
+``group_size`` (K) rollouts, each group from one initial state of the SPO part of the training seed range;
+compute group-relative advantages (Eq. 8; leave-one-out for ``ript``); drop groups whose rewards are all equal
+and draw new states (dynamic rejection); then ``epochs`` (N) epochs of minibatch updates of the **skill prior
+only** with the clipped objective of :mod:`lerobot_cso.cso.objectives` at the chosen granularity.
+
+The observation encoders stay frozen: the encoder context of each decision is cached during the rollout
+and the optimizer holds the prior's parameters alone, so the encoders are bit-identical before and after.
+π_old's log-probs are recomputed right after collection by teacher forcing with the same function as the
+updated policy's (dropout off), so the first minibatch has ratio exactly 1. Ratios use the softmax at the
+sampling temperature over all codes (``ratio_top_k: null``, as RIPT), not the top-k-truncated one, so a token
+that leaves the top-k keeps a finite ratio.
+
+Every iteration is checkpointed atomically (policy, processors, optimizer, seed cursor, history); a rerun
+continues after the last finished iteration. Logged per iteration: SR of the collected groups, rejection
+rate, clip fraction, approximate KL, loss, grad norm, wall time — console table, ``log.jsonl``, PNG plots,
+and wandb when ``--wandb.enable=true``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import torch
+from lerobot.configs import parser
+from lerobot.configs.default import WandBConfig
+from lerobot.configs.policies import PreTrainedConfig
+
+from lerobot_cso.checkpoints import (
+    load_policy,
+    policy_config_from_cli,
+    replace_dir,
+    restore_interrupted_replace,
+    save_checkpoint,
+    write_atomic,
+)
+from lerobot_cso.cso.objectives import (
+    Granularity,
+    advantages_for,
+    clipped_surrogate_loss,
+    default_clip,
+    reject_uniform_groups,
+)
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.errors import UsageError
+from lerobot_cso.policy import CSOPolicy
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
+
+SPO_SEED_OFFSET = 500_000  # SPO states: second half of the training range (R-SFT uses the first)
+LOG_COLUMNS = (
+    "iteration",
+    "success_rate",
+    "rejection_rate",
+    "clip_fraction",
+    "approx_kl",
+    "loss",
+    "grad_norm",
+    "seconds",
+)
+
+
+@dataclass
+class SPOConfig:
+    """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
+
+    policy: PreTrainedConfig | None = None
+    tasks: str = "MT10"
+    output_dir: Path = Path("outputs/spo")
+    # token (GRPO) | skill (SPO, Eq. 9) | trajectory (GSPO) | ript
+    objective: str = "skill"
+    iterations: int = 30  # M
+    groups_per_iteration: int = 150  # B
+    group_size: int = 8  # K
+    epochs: int = 4  # N
+    minibatch_trajectories: int = 64
+    lr: float = 1e-6
+    weight_decay: float = 0.0
+    grad_clip_norm: float = 1.0
+    # Ratio clip range [clip_low, clip_high]; null → the objective's default (skill: [0.93, 1.15]).
+    clip_low: float | None = None
+    clip_high: float | None = None
+    temperature: float = 1.0
+    top_k: int | None = 5
+    ratio_top_k: int | None = None
+    # Give up on an iteration's collection after drawing this many times B groups (all rejected).
+    max_draw_factor: int = 4
+    num_envs: int = 16
+    seed: int = 0
+    wandb: WandBConfig = field(default_factory=WandBConfig)
+
+    def __post_init__(self) -> None:
+        self.policy = policy_config_from_cli() or self.policy
+
+    @classmethod
+    def __get_path_fields__(cls) -> list[str]:
+        return ["policy"]
+
+    def validate(self) -> list[str]:
+        if self.policy is None or self.policy.pretrained_path is None:
+            raise UsageError("--policy.path is required (the R-SFT checkpoint's pretrained_model directory)")
+        if self.objective not in set(Granularity):
+            raise UsageError(f"objective must be one of {', '.join(Granularity)}, got '{self.objective}'")
+        try:
+            tasks = resolve_tasks(self.tasks)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        for name in ("iterations", "groups_per_iteration", "epochs", "minibatch_trajectories", "num_envs"):
+            if getattr(self, name) < 1:
+                raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.group_size < 2:
+            raise UsageError(f"group_size must be >= 2 for group-relative advantages, got {self.group_size}")
+        low, high = self.clip()
+        if not 0 < low <= 1 <= high:
+            raise UsageError(f"the clip range must satisfy 0 < clip_low <= 1 <= clip_high, got [{low}, {high}]")
+        unknown = [t for t in tasks if task_description(t) not in self.policy.tasks]
+        if unknown:
+            raise UsageError(f"the policy was not trained on {', '.join(unknown)}")
+        return tasks
+
+    def clip(self) -> tuple[float, float]:
+        low, high = default_clip(self.objective)
+        return (low if self.clip_low is None else self.clip_low, high if self.clip_high is None else self.clip_high)
+
+
+@dataclass
+class Batch:
+    """Accepted groups as padded tensors: N trajectories × D decisions × n tokens."""
+
+    contexts: torch.Tensor  # (N, D, P, d)
+    tokens: torch.Tensor  # (N, D, n)
+    mask: torch.Tensor  # (N, D) bool
+    advantages: torch.Tensor  # (N,)
+
+    @classmethod
+    def from_groups(cls, groups: list[list[Episode]], objective: str) -> Batch:
+        episodes = [e for g in groups for e in g]
+        rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
+        d_max = max(len(e.tokens) for e in episodes)
+        first = episodes[0]
+        contexts = first.contexts.new_zeros(len(episodes), d_max, *first.contexts.shape[1:])
+        tokens = first.tokens.new_zeros(len(episodes), d_max, first.tokens.shape[-1])
+        mask = torch.zeros(len(episodes), d_max, dtype=torch.bool)
+        for i, e in enumerate(episodes):
+            d = len(e.tokens)
+            contexts[i, :d], tokens[i, :d], mask[i, :d] = e.contexts, e.tokens, True
+        return cls(contexts, tokens, mask, advantages_for(objective, rewards).reshape(-1))
+
+
+def padded_logprobs(
+    policy: CSOPolicy,
+    contexts: torch.Tensor,
+    tokens: torch.Tensor,
+    mask: torch.Tensor,
+    temperature: float,
+    top_k: int | None,
+) -> torch.Tensor:
+    """Teacher-forced per-token log-probs (N, D, n) of the valid decisions; zeros where padded."""
+    out = torch.zeros(tokens.shape, dtype=torch.float32, device=contexts.device)
+    out[mask] = policy.token_logprobs(contexts[mask], tokens[mask], temperature, top_k)
+    return out
+
+
+def collect_groups(
+    cfg: SPOConfig, tasks: list[str], engine: RolloutEngine, cursor: int, round_seed: int
+) -> tuple[list[list[Episode]], dict[str, float], int]:
+    """Draw groups of K until B are accepted (dynamic rejection); returns groups, stats, new seed cursor."""
+    sampling = Sampling(temperature=cfg.temperature, top_k=cfg.top_k)
+    accepted: list[list[Episode]] = []
+    outcomes: list[float] = []
+    drawn = 0
+    while len(accepted) < cfg.groups_per_iteration and drawn < cfg.max_draw_factor * cfg.groups_per_iteration:
+        n = cfg.groups_per_iteration - len(accepted)
+        states = [
+            InitialState(tasks[(cursor + i) % len(tasks)], seeds.train_seeds(1, SPO_SEED_OFFSET + cursor + i)[0])
+            for i in range(n)
+        ]
+        cursor += n
+        result = engine.rollout(states, k=cfg.group_size, sampling=sampling, seed=round_seed + drawn)
+        groups = result.groups()
+        rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
+        keep = reject_uniform_groups(rewards)
+        accepted += [g for g, k in zip(groups, keep.tolist(), strict=True) if k]
+        outcomes += rewards.reshape(-1).tolist()
+        drawn += len(groups)
+    stats = {"success_rate": float(np.mean(outcomes)), "rejection_rate": 1 - len(accepted) / drawn}
+    return accepted, stats, cursor
+
+
+def update(
+    cfg: SPOConfig, policy: CSOPolicy, optimizer: torch.optim.Optimizer, batch: Batch, generator: torch.Generator
+) -> dict[str, float]:
+    """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21)."""
+    policy.eval()  # dropout off: π_old and π are evaluated identically
+    with torch.no_grad():
+        old = padded_logprobs(policy, batch.contexts, batch.tokens, batch.mask, cfg.temperature, cfg.ratio_top_k)
+    clip = cfg.clip()
+    rows: list[dict[str, float]] = []
+    n = len(batch.tokens)
+    for _ in range(cfg.epochs):
+        for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
+            new = padded_logprobs(
+                policy, batch.contexts[idx], batch.tokens[idx], batch.mask[idx], cfg.temperature, cfg.ratio_top_k
+            )
+            loss, stats = clipped_surrogate_loss(
+                new, old[idx], batch.mask[idx], batch.advantages[idx], cfg.objective, clip
+            )
+            optimizer.zero_grad()
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(policy.prior.parameters(), cfg.grad_clip_norm)
+            optimizer.step()
+            rows.append({"loss": float(loss), "grad_norm": float(grad_norm), **asdict(stats)})
+    return {key: float(np.mean([r[key] for r in rows])) for key in ("loss", "grad_norm", "clip_fraction", "approx_kl")}
+
+
+def plot_history(history: list[dict[str, float]], path: Path) -> None:
+    """PNG of success rate and clip fraction per iteration."""
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    its = [h["iteration"] for h in history]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    for ax, key, label in zip(axes, ("success_rate", "clip_fraction"), ("success rate", "clip fraction"), strict=True):
+        ax.plot(its, [h[key] for h in history], marker="o")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def format_row(row: dict[str, float]) -> str:
+    return " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in LOG_COLUMNS)
+
+
+def run_spo(cfg: SPOConfig) -> list[dict[str, float]]:
+    """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``."""
+    tasks = cfg.validate()
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    state = cfg.output_dir / "state"
+    restore_interrupted_replace(state)
+    progress_file = state / "progress.json"
+    resume = progress_file.is_file()
+    progress = json.loads(progress_file.read_text()) if resume else {"iteration": 0, "cursor": 0, "history": []}
+    if progress["iteration"] >= cfg.iterations:
+        print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
+        return progress["history"]
+    source = state / "pretrained_model" if resume else cfg.policy.pretrained_path
+    policy, pre, post = load_policy(source, cfg.policy if not resume else None)
+    policy.set_encoders_frozen(True)
+    optimizer = torch.optim.AdamW(policy.prior.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if resume:
+        optimizer.load_state_dict(torch.load(state / "optimizer.pt"))
+    generator = torch.Generator().manual_seed(cfg.seed)
+    run = None
+    if cfg.wandb.enable:
+        import wandb
+
+        run = wandb.init(
+            project=cfg.wandb.project,
+            entity=cfg.wandb.entity,
+            mode=cfg.wandb.mode,
+            config=json.loads(json.dumps(asdict(cfg), default=str)),
+            resume="allow",
+            id=cfg.wandb.run_id,
+        )
+    history = progress["history"]
+    print(" | ".join(LOG_COLUMNS))
+    with RolloutEngine(policy, pre, post, num_envs=cfg.num_envs) as engine:
+        for iteration in range(progress["iteration"], cfg.iterations):
+            started = time.perf_counter()
+            round_seed = cfg.seed * 1_000_003 + iteration * 10_007
+            groups, stats, cursor = collect_groups(cfg, tasks, engine, progress["cursor"], round_seed)
+            generator.manual_seed(round_seed)
+            if groups:
+                stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
+            else:  # every group was uniform: nothing to learn from this iteration
+                stats |= {"loss": 0.0, "grad_norm": 0.0, "clip_fraction": 0.0, "approx_kl": 0.0}
+            row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
+            history.append(row)
+            print(format_row(row), flush=True)
+            if run is not None:
+                run.log(row, step=iteration + 1)
+            tmp = cfg.output_dir / "state.tmp"
+            shutil.rmtree(tmp, ignore_errors=True)
+            save_checkpoint(tmp / "pretrained_model", policy, pre, post)
+            torch.save(optimizer.state_dict(), tmp / "optimizer.pt")
+            progress = {"iteration": iteration + 1, "cursor": cursor, "history": history}
+            write_atomic(tmp / "progress.json", json.dumps(progress).encode())
+            replace_dir(tmp, state)
+            write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
+            plot_history(history, cfg.output_dir / "spo.png")
+    save_checkpoint(cfg.output_dir / "pretrained_model", policy, pre, post)
+    if run is not None:
+        run.finish()
+    return history
+
+
+@parser.wrap()
+def spo_main(cfg: SPOConfig) -> None:
+    """Entry point of ``lerobot-cso spo``."""
+    run_spo(cfg)
+    print(f"SPO checkpoint: {cfg.output_dir / 'pretrained_model'}")
