@@ -208,8 +208,8 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
                     f"{task}: only {kept[task]} successes after {len(tried)} initial states; the IL policy "
                     f"rarely solves it (raise --max_states_per_task or lower --successes_per_task)"
                 )
-            fresh = (s for s in seeds.train_seeds(cfg.max_states_per_task, RSFT_SEED_OFFSET) if s not in tried)
-            requests += [InitialState(task, next(fresh)) for _ in range(cfg.states_per_round)]
+            fresh = [s for s in seeds.train_seeds(cfg.max_states_per_task, RSFT_SEED_OFFSET) if s not in tried]
+            requests += [InitialState(task, s) for s in fresh[: cfg.states_per_round]]
         round_seed = cfg.seed * 1_000_003 + requests[0].seed
         needed = dict(kept)
 
@@ -321,7 +321,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
             accelerator.backward(loss)
             accelerator.clip_grad_norm_(policy.parameters(), cfg.grad_clip_norm)
             optimizer.step()
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
         print(f"R-SFT epoch {epoch + 1}/{cfg.epochs}: skill NLL {np.mean(losses):.4f} ({len(starts)} decisions)")
         tmp = cfg.output_dir / "train_state.tmp"
         shutil.rmtree(tmp, ignore_errors=True)

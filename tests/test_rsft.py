@@ -1,0 +1,203 @@
+"""R-SFT: N-strikes collection with state switching, durability across a crash, the LeRobotDataset buffer,
+Eq. 6 fine-tuning with frozen-encoder checkpoint, and pushing the buffer to a stand-in Hub."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from cso_fakes import TASKS, ScriptedEngine, save_tiny_metaworld_policy
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.cso import rsft
+from lerobot_cso.envs.tasks import task_description
+from lerobot_cso.errors import UsageError
+from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
+
+S = 1_000_000  # first R-SFT initial-state seed
+OUTCOMES = {  # (task, seed) -> samples that succeed
+    ("reach-v3", S): set(),
+    ("reach-v3", S + 1): {1, 3},
+    ("reach-v3", S + 2): {0, 1, 2, 3},
+    ("reach-v3", S + 3): {0},
+    ("button-press-v3", S): {2},
+    ("button-press-v3", S + 1): set(),
+    ("button-press-v3", S + 2): {0, 1, 2, 3},
+    ("button-press-v3", S + 3): set(),
+}
+EXPECTED_FILES = {
+    "reach-v3": ["1000001_001", "1000001_003", "1000002_000"],
+    "button-press-v3": ["1000000_002", "1000002_000", "1000002_001"],
+}
+# Hand count: reach tried 4 states x 4 attempts, saw 0+2+4+1 successes, kept 3, struck out on S.
+EXPECTED_REPORT = {
+    "reach-v3": {"rollouts": 16, "successes": 7, "kept": 3, "states_tried": 4, "states_struck_out": 1},
+    "button-press-v3": {"rollouts": 16, "successes": 5, "kept": 3, "states_tried": 4, "states_struck_out": 2},
+}
+
+
+def outcome(task: str, seed: int, sample: int) -> bool:
+    return sample in OUTCOMES[(task, seed)]
+
+
+@pytest.fixture(scope="module")
+def il_policy(tmp_path_factory) -> Path:
+    return save_tiny_metaworld_policy(tmp_path_factory.mktemp("il") / "pretrained_model")
+
+
+def make_cfg(il_policy: Path, out: Path, **kw) -> rsft.RSFTConfig:
+    cfg = rsft.RSFTConfig(
+        tasks=",".join(TASKS),
+        output_dir=out,
+        successes_per_task=3,
+        n_strikes=4,
+        states_per_round=2,
+        epochs=10,
+        batch_size=8,
+        lr=1e-3,
+        min_lr=1e-4,
+        **kw,
+    )
+    cfg.policy = load_policy(il_policy)[0].config
+    cfg.policy.pretrained_path = il_policy
+    return cfg
+
+
+def kept_files(journal: rsft.Journal) -> dict[str, list[str]]:
+    return {t: [p.stem for p in journal.episode_files(t)] for t in TASKS}
+
+
+@pytest.fixture(scope="module")
+def collected(il_policy, tmp_path_factory):
+    cfg = make_cfg(il_policy, tmp_path_factory.mktemp("rsft") / "out")
+    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
+    engine = ScriptedEngine(outcome)
+    rsft.collect(cfg, list(TASKS), engine, journal)
+    return cfg, journal, engine
+
+
+def test_n_strikes_keeps_successes_and_switches_states(collected):
+    cfg, journal, engine = collected
+    assert kept_files(journal) == EXPECTED_FILES
+    assert rsft.collection_report(journal, list(TASKS)) == EXPECTED_REPORT
+    # Two rounds of two new states per unfinished task; every state is one group of n_strikes attempts.
+    assert [[(s.task, s.seed) for s in call] for call in engine.calls] == [
+        [("reach-v3", S), ("reach-v3", S + 1), ("button-press-v3", S), ("button-press-v3", S + 1)],
+        [("reach-v3", S + 2), ("reach-v3", S + 3), ("button-press-v3", S + 2), ("button-press-v3", S + 3)],
+    ]
+
+
+def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy, tmp_path):
+    cfg = make_cfg(il_policy, tmp_path / "out")
+    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
+    with pytest.raises(KeyboardInterrupt):  # dies after 10 finished episodes of the first round
+        rsft.collect(cfg, list(TASKS), ScriptedEngine(outcome, crash_after=10), journal)
+    assert kept_files(journal)["reach-v3"] == ["1000001_001", "1000001_003"]  # durable the moment they finished
+    assert rsft.collection_report(journal, list(TASKS))["reach-v3"]["states_tried"] == 0
+    rsft.collect(cfg, list(TASKS), ScriptedEngine(outcome), rsft.Journal(cfg.output_dir / "journal", cfg.spec()))
+    assert kept_files(journal) == EXPECTED_FILES
+    assert rsft.collection_report(journal, list(TASKS)) == EXPECTED_REPORT
+
+
+def test_a_journal_with_other_settings_is_refused(il_policy, tmp_path):
+    rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
+    with pytest.raises(UsageError, match="other settings"):
+        rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, temperature=0.7).spec())
+
+
+def test_a_task_never_solved_is_a_clear_error(il_policy, tmp_path):
+    cfg = make_cfg(il_policy, tmp_path / "out", max_states_per_task=3)
+    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
+    with pytest.raises(UsageError, match="reach-v3: only 0 successes after 3 initial states"):
+        rsft.collect(cfg, ["reach-v3"], ScriptedEngine(lambda *_: False), journal)
+
+
+@pytest.fixture(scope="module")
+def buffer(collected) -> Path:
+    cfg, journal, _ = collected
+    return rsft.write_buffer(cfg, list(TASKS), journal, n_tokens=8)
+
+
+def test_buffer_is_a_lerobot_dataset_with_skill_tokens(buffer, collected):
+    cfg, journal, engine = collected
+    ds = LeRobotDataset(cfg.repo_id, root=buffer)
+    lengths = [20 + int(stem.split("_")[1]) for t in TASKS for stem in EXPECTED_FILES[t]]
+    assert ds.num_episodes == 6 and ds.num_frames == sum(lengths) == 127
+    table = ds.hf_dataset.with_format("numpy")[:]
+    starts = np.flatnonzero(table[SKILL_START_KEY].reshape(-1) == 1)
+    assert len(starts) == 6 * 3  # decisions at steps 0, 8, 16 of every episode
+    # The tokens stored at each decision frame are the ones the engine sampled there.
+    first = engine.episode("reach-v3", S + 1, 1, 1)
+    episode0 = table["episode_index"] == 0
+    np.testing.assert_array_equal(table[SKILL_TOKENS_KEY][episode0][[0, 8, 16]], first.tokens.numpy())
+    np.testing.assert_array_equal(table[SKILL_STEP_KEY][episode0].reshape(-1)[[0, 7, 8, 20]], [0, 0, 1, 2])
+    np.testing.assert_allclose(table["observation.state"][episode0], first.states.numpy())
+    item = ds[0]
+    assert item["task"] == task_description("reach-v3")
+    assert item[SKILL_TOKENS_KEY].dtype == torch.int64 and item[SKILL_TOKENS_KEY].shape == (8,)
+
+
+def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collected, il_policy):
+    cfg, _, _ = collected
+    before, pre, _ = load_policy(il_policy)
+    out = rsft.finetune(cfg, buffer)
+    after, _, _ = load_policy(out)
+    assert after.config.freeze_encoders and not any(p.requires_grad for p in after.encoders.parameters())
+    ds = LeRobotDataset(cfg.repo_id, root=buffer)
+    table = ds.hf_dataset.with_format("torch")[:]
+    rows = torch.flatten(torch.nonzero(table[SKILL_START_KEY].reshape(-1) == 1))
+    batch = pre({"observation.state": table["observation.state"][rows], "task": [ds[int(i)]["task"] for i in rows]})
+    tokens = table[SKILL_TOKENS_KEY][rows]
+
+    def nll(policy):
+        with torch.no_grad():
+            return -policy.eval().token_logprobs(policy.encode_context(batch), tokens).mean().item()
+
+    assert nll(after) < nll(before) - 0.5  # Eq. 6 on 18 stored skills, 10 epochs at lr 1e-3
+    changed = [
+        not torch.equal(a, b) for a, b in zip(before.encoders.parameters(), after.encoders.parameters(), strict=True)
+    ]
+    assert any(changed)  # the whole policy was fine-tuned before the freeze
+
+
+class StandInHub:
+    """Records what LeRobot's push_to_hub would send; never touches the network."""
+
+    uploads: list[tuple[str, list[str]]] = []
+
+    def create_repo(self, repo_id, **kw):
+        return repo_id
+
+    def create_branch(self, *a, **kw):
+        pass
+
+    def upload_folder(self, repo_id, folder_path, ignore_patterns=(), **kw):
+        files = sorted(str(p.relative_to(folder_path)) for p in Path(folder_path).rglob("*") if p.is_file())
+        StandInHub.uploads.append((repo_id, files))
+
+    def delete_tag(self, *a, **kw):
+        pass
+
+    def create_tag(self, repo_id, tag, **kw):
+        StandInHub.uploads.append((repo_id, [f"tag:{tag}"]))
+
+
+def test_push_uploads_the_buffer_to_a_stand_in_hub(buffer, collected, monkeypatch):
+    import huggingface_hub
+    import lerobot.datasets.lerobot_dataset as lerobot_dataset
+
+    cfg, _, _ = collected
+    monkeypatch.setattr(lerobot_dataset, "HfApi", StandInHub)
+    monkeypatch.setattr(huggingface_hub.RepoCard, "push_to_hub", lambda self, **kw: None)
+    StandInHub.uploads.clear()
+    ds = LeRobotDataset(cfg.repo_id, root=buffer)
+    ds.repo_id = "lab/cso_buffer"
+    ds.push_to_hub()
+    (repo, files), (_, tag) = StandInHub.uploads
+    assert repo == "lab/cso_buffer"
+    assert {"meta/info.json", "meta/stats.json", "meta/tasks.parquet"} <= set(files)
+    assert any(f.startswith("data/") and f.endswith(".parquet") for f in files)
+    assert tag == ["tag:v3.0"]
