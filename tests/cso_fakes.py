@@ -108,3 +108,9 @@ class ScriptedEngine:
                 if on_episode is not None:
                     on_episode(episode)
         return RolloutResult(episodes, k, sampling, seconds=1.0, policy_seconds=0.5)
+
+    def __enter__(self) -> ScriptedEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -242,8 +243,11 @@ def format_row(row: dict[str, float]) -> str:
     return " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in LOG_COLUMNS)
 
 
-def run_spo(cfg: SPOConfig) -> list[dict[str, float]]:
-    """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``."""
+def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine) -> list[dict[str, float]]:
+    """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``.
+
+    ``make_engine(policy, preprocessor, postprocessor, num_envs=...)`` builds the rollout engine.
+    """
     tasks = cfg.validate()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     state = cfg.output_dir / "state"
@@ -275,7 +279,7 @@ def run_spo(cfg: SPOConfig) -> list[dict[str, float]]:
         )
     history = progress["history"]
     print(" | ".join(LOG_COLUMNS))
-    with RolloutEngine(policy, pre, post, num_envs=cfg.num_envs) as engine:
+    with make_engine(policy, pre, post, num_envs=cfg.num_envs) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
             round_seed = cfg.seed * 1_000_003 + iteration * 10_007

@@ -1,0 +1,127 @@
+"""SPO: dynamic rejection, prior-only updates with frozen encoders, every granularity on one engine, resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from cso_fakes import TASKS, ScriptedEngine, save_tiny_metaworld_policy
+
+from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.cso import spo
+
+S = 1_500_000  # first SPO initial-state seed
+
+
+def mixed(task: str, seed: int, sample: int) -> bool:
+    """Odd seeds: samples 0 and 1 of 4 succeed; seeds = 0 mod 4 all fail; seeds = 2 mod 4 all succeed."""
+    if seed % 2:
+        return sample < 2
+    return seed % 4 == 2
+
+
+@pytest.fixture(scope="module")
+def rsft_policy(tmp_path_factory) -> Path:
+    path = save_tiny_metaworld_policy(tmp_path_factory.mktemp("rsft") / "pretrained_model", seed=1)
+    policy, pre, post = load_policy(path)
+    policy.set_encoders_frozen(True)
+    policy.save_pretrained(path)
+    return path
+
+
+def make_cfg(policy_path: Path, out: Path, **kw) -> spo.SPOConfig:
+    defaults = dict(
+        tasks=",".join(TASKS),
+        output_dir=out,
+        iterations=2,
+        groups_per_iteration=2,
+        group_size=4,
+        epochs=2,
+        minibatch_trajectories=4,
+        lr=1e-3,
+    )
+    cfg = spo.SPOConfig(**(defaults | kw))
+    cfg.policy = load_policy(policy_path)[0].config
+    cfg.policy.pretrained_path = policy_path
+    return cfg
+
+
+def engine_factory(engines: list[ScriptedEngine], outcome=mixed):
+    def make(policy, pre, post, num_envs):
+        engine = ScriptedEngine(outcome, policy=policy)
+        engines.append(engine)
+        return engine
+
+    return make
+
+
+def test_dynamic_rejection_draws_new_states_until_b_groups(rsft_policy, tmp_path):
+    cfg = make_cfg(rsft_policy, tmp_path)
+    engine = ScriptedEngine(mixed)
+    groups, stats, cursor = spo.collect_groups(cfg, list(TASKS), engine, cursor=0, round_seed=0)
+    # Draw 1: seeds S (all fail, rejected) and S+1 (2/4, kept); draw 2: S+2 (all succeed, rejected);
+    # draw 3: S+3 (2/4, kept). 4 groups drawn, 2 rejected; 2+4+2 successes of 16 episodes.
+    assert [[s.seed for s in call] for call in engine.calls] == [[S, S + 1], [S + 2], [S + 3]]
+    assert [g[0].init_seed for g in groups] == [S + 1, S + 3]
+    assert stats == {"success_rate": 8 / 16, "rejection_rate": 0.5}
+    assert cursor == 4
+    assert [g[0].task for g in groups] == ["button-press-v3", "button-press-v3"]  # tasks alternate per state
+
+
+def test_batch_pads_decisions_and_broadcasts_group_advantages(rsft_policy, tmp_path):
+    engine = ScriptedEngine(mixed)
+    groups = [engine.rollout([("reach-v3", S + 1)], k=4).groups()[0]]
+    batch = spo.Batch.from_groups(groups, "skill")
+    # Lengths 20..23 steps -> 3 decisions each (steps 0, 8, 16); rewards 1,1,0,0 -> A = R - 0.5.
+    assert batch.tokens.shape == (4, 3, 8) and batch.mask.all()
+    torch.testing.assert_close(batch.advantages, torch.tensor([0.5, 0.5, -0.5, -0.5]))
+    loo = spo.Batch.from_groups(groups, "ript").advantages  # leave-one-out: 1 - 1/3, 0 - 2/3
+    torch.testing.assert_close(loo, torch.tensor([2 / 3, 2 / 3, -2 / 3, -2 / 3]))
+
+
+@pytest.mark.parametrize("objective", ["skill", "token", "trajectory", "ript"])
+def test_spo_updates_the_prior_only(rsft_policy, tmp_path, objective):
+    engines: list[ScriptedEngine] = []
+    cfg = make_cfg(rsft_policy, tmp_path / objective, objective=objective)
+    history = spo.run_spo(cfg, make_engine=engine_factory(engines))
+    before, _, _ = load_policy(rsft_policy)
+    after, _, _ = load_policy(cfg.output_dir / "pretrained_model")
+    for name in ("encoders", "autoencoder"):
+        a, b = getattr(before, name).state_dict(), getattr(after, name).state_dict()
+        assert all(torch.equal(a[k], b[k]) for k in a), f"{name} changed"
+    assert any(not torch.equal(p, q) for p, q in zip(before.prior.parameters(), after.prior.parameters(), strict=True))
+    assert after.config.freeze_encoders
+    assert [h["iteration"] for h in history] == [1, 2]
+    assert all(h["rejection_rate"] == 0.5 and h["success_rate"] == 0.5 for h in history)
+    assert all(0.0 <= h["clip_fraction"] <= 1.0 and h["grad_norm"] > 0 for h in history)
+    logged = [json.loads(line) for line in (cfg.output_dir / "log.jsonl").read_text().splitlines()]
+    assert logged == history
+    assert (cfg.output_dir / "spo.png").stat().st_size > 1000
+
+
+def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_path):
+    cfg = make_cfg(rsft_policy, tmp_path, epochs=1, minibatch_trajectories=64, lr=0.0)
+    engines: list[ScriptedEngine] = []
+    history = spo.run_spo(cfg, make_engine=engine_factory(engines))
+    # With lr 0, π = π_old throughout: every ratio is exactly 1, nothing is clipped and the KL is 0.
+    assert all(h["clip_fraction"] == 0.0 and abs(h["approx_kl"]) < 1e-6 for h in history)
+
+
+def test_resume_continues_after_the_last_finished_iteration(rsft_policy, tmp_path):
+    engines: list[ScriptedEngine] = []
+    first = spo.run_spo(make_cfg(rsft_policy, tmp_path, iterations=1), make_engine=engine_factory(engines))
+    resumed = spo.run_spo(make_cfg(rsft_policy, tmp_path, iterations=2), make_engine=engine_factory(engines))
+    assert resumed[0] == first[0] and [h["iteration"] for h in resumed] == [1, 2]
+    seeds_run = [s.seed for e in engines for call in e.calls for s in call]
+    assert len(seeds_run) == len(set(seeds_run))  # the second run drew new initial states only
+    again = spo.run_spo(make_cfg(rsft_policy, tmp_path, iterations=2), make_engine=engine_factory(engines))
+    assert again == resumed and len(engines) == 2  # complete: nothing rolled out
+
+
+def test_bad_objective_is_a_clear_error(rsft_policy, tmp_path):
+    from lerobot_cso.errors import UsageError
+
+    with pytest.raises(UsageError, match="objective must be one of token, skill, trajectory, ript"):
+        make_cfg(rsft_policy, tmp_path, objective="sequence").validate()
