@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import json
 from functools import cache
-from importlib import resources
+from importlib.util import find_spec
+from pathlib import Path
 
 TASK_SET_NAMES = ("MT10", "MT50", "ML45-train", "ML45-test")
 
@@ -42,8 +43,9 @@ def task_sets() -> dict[str, tuple[str, ...]]:
 
 @cache
 def _descriptions() -> dict[str, str]:
-    path = resources.files("lerobot.envs") / "metaworld_config.json"
-    descriptions = json.loads(path.read_text())["TASK_DESCRIPTIONS"]
+    # LeRobot's metaworld_config.json, located without importing lerobot (whose env package imports torch)
+    package_dir = Path(find_spec("lerobot").submodule_search_locations[0])
+    descriptions = json.loads((package_dir / "envs" / "metaworld_config.json").read_text())["TASK_DESCRIPTIONS"]
     return {**descriptions, **_DESCRIPTION_OVERRIDES}
 
 

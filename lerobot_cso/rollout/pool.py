@@ -153,7 +153,7 @@ class EnvPool:
         else:
             self.vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)
         self.vec.reset(options={"park": True})  # every slot starts parked; jobs reset slots individually
-        self._tasks: list[str | None] = [None] * num_envs  # the task each slot ran last
+        self._tasks: list[str | None] = [None] * num_envs  # the task each slot ran last in this run
         self._parked = np.ones(num_envs, dtype=bool)  # persists across runs: a slot that ended must be parked
 
     def _reset(self, slots: list[int], options: dict[str, Any], seeds: list[int | None] | None = None) -> dict:
@@ -176,6 +176,9 @@ class EnvPool:
         for task in {job.task for job in jobs}:
             check_task(task)
         scheduler = _Scheduler(jobs)
+        # Forget the previous run's slot tasks: the same jobs then always get the same slots, hence the same
+        # policy batches (float results can depend on a row's batch), and a call is reproducible.
+        self._tasks = [None] * self.num_envs
         running: list[tuple[int, Job] | None] = [None] * self.num_envs
         recorders: list[_Recorder | None] = [None] * self.num_envs
         parked = self._parked
