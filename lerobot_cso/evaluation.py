@@ -24,7 +24,7 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.constants import HORIZON
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.envs.tasks import all_tasks, resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 
 
@@ -90,10 +90,11 @@ class EvalConfig:
             raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         if self.temperature <= 0 or (self.top_k is not None and self.top_k < 1):
             raise UsageError("temperature must be > 0 and top_k >= 1 (or null)")
-        known = getattr(self.policy, "tasks", None)
+        known = getattr(self.policy, "tasks", None)  # the task strings a language/one-hot policy was trained on
         unknown = [t for t in tasks if known and task_description(t) not in known]
         if unknown:
-            raise UsageError(f"the policy was not trained on {', '.join(unknown)}; it knows: {', '.join(known)}")
+            trained = [t for t in all_tasks() if task_description(t) in known]
+            raise UsageError(f"the policy was not trained on {', '.join(unknown)}; it knows: {', '.join(trained)}")
         self.eval_seeds()
         return tasks
 
