@@ -19,8 +19,6 @@ frames (AdamW, cosine lr schedule, ``epochs`` epochs, state saved after each epo
 encoders are frozen and ``<output_dir>/pretrained_model`` is saved with ``freeze_encoders: true``.
 """
 
-from __future__ import annotations
-
 import json
 import math
 import shutil

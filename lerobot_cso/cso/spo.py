@@ -19,8 +19,6 @@ rate, clip fraction, approximate KL, loss, grad norm, wall time — console tabl
 and wandb when ``--wandb.enable=true``.
 """
 
-from __future__ import annotations
-
 import json
 import shutil
 import time
@@ -142,7 +140,7 @@ class Batch:
     advantages: torch.Tensor  # (N,)
 
     @classmethod
-    def from_groups(cls, groups: list[list[Episode]], objective: str) -> Batch:
+    def from_groups(cls, groups: list[list[Episode]], objective: str) -> "Batch":
         episodes = [e for g in groups for e in g]
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
         d_max = max(len(e.tokens) for e in episodes)
