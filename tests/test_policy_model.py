@@ -185,3 +185,9 @@ def test_image_policy_forward_and_sampling(tmp_path):
     loss, info = policy.forward(batch)
     assert info["phase"] == 0 and loss.requires_grad
     assert policy.eval().predict_action_chunk(batch).shape == (2, 32, 3)
+
+
+def test_decoding_a_prefix_equals_the_prefix_of_the_full_chunk(policy):
+    tokens, _ = policy.sample_skills(policy.encode_context(batch_of(3)))
+    full = policy.decode_skills(tokens)
+    torch.testing.assert_close(policy.decode_skills(tokens, 8), full[:, :8], atol=1e-5, rtol=0)

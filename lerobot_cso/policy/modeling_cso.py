@@ -182,9 +182,9 @@ class CSOPolicy(PreTrainedPolicy):
         logp = filtered_log_probs(self.prior.logits(context, tokens), temperature, top_k)
         return logp.gather(-1, tokens.unsqueeze(-1)).squeeze(-1)
 
-    def decode_skills(self, tokens: Tensor) -> Tensor:
-        """Token ids (B, n) → normalised action chunk (B, chunk_size, action_dim)."""
-        return self.autoencoder.decode_tokens(tokens)
+    def decode_skills(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
+        """Token ids (B, n) → the first ``n_actions`` (default: all) normalised actions (B, n_actions, A)."""
+        return self.autoencoder.decode_tokens(tokens, n_actions)
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
@@ -200,7 +200,9 @@ class CSOPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
         """Decode a skill, execute its first ``n_action_steps`` actions, then replan."""
         if not self._action_queue:
-            chunk = self.predict_action_chunk(batch)[:, : self.config.n_action_steps]
+            cfg = self.config
+            tokens, _ = self.sample_skills(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
+            chunk = self.decode_skills(tokens, cfg.n_action_steps)  # only the executed prefix is decoded
             self._action_queue.extend(chunk.transpose(0, 1))
         return self._action_queue.popleft()
 

@@ -90,15 +90,20 @@ class SkillAutoencoder(nn.Module):
         codes, indices = self.quantizer(x)
         return codes, indices.long()
 
-    def decode_codes(self, codes: Tensor) -> Tensor:
-        """Token codes (B, n, dim) → actions (B, T, A)."""
-        queries = self.action_queries.expand(codes.shape[0], -1, -1)
-        mask = causal_mask(self.chunk_size, codes.device)
+    def decode_codes(self, codes: Tensor, n_actions: int | None = None) -> Tensor:
+        """Token codes (B, n, dim) → the first ``n_actions`` (default all T) actions (B, n_actions, A).
+
+        The decoder's self-attention is causal and its queries are fixed, so action i depends only on the
+        codes and queries 0..i: decoding a prefix gives exactly the first actions of the full chunk.
+        """
+        n_actions = self.chunk_size if n_actions is None else n_actions
+        queries = self.action_queries[:n_actions].expand(codes.shape[0], -1, -1)
+        mask = causal_mask(n_actions, codes.device)
         return self.action_head(self.decoder(queries, codes, tgt_mask=mask, tgt_is_causal=True))
 
-    def decode_tokens(self, tokens: Tensor) -> Tensor:
-        """Token ids (B, n) → actions (B, T, A)."""
-        return self.decode_codes(self.quantizer.indices_to_codes(tokens))
+    def decode_tokens(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
+        """Token ids (B, n) → actions (B, n_actions or T, A)."""
+        return self.decode_codes(self.quantizer.indices_to_codes(tokens), n_actions)
 
     def forward(self, actions: Tensor) -> tuple[Tensor, Tensor]:
         """Reconstruct a chunk; returns (reconstruction, token ids)."""
