@@ -236,13 +236,20 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: _Staging, in_dataset:
     work = staging.root / "dataset"
     if work.exists():
         shutil.rmtree(work)  # an assembly that was interrupted: redo it
+    writer_threads = 4 if cameras else 0  # PNG encoding of camera frames
     if in_dataset:
         shutil.copytree(cfg.output_dir, work)
-        ds = LeRobotDataset.resume(cfg.repo_id, root=work, video_backend="pyav")
+        ds = LeRobotDataset.resume(cfg.repo_id, root=work, video_backend="pyav", image_writer_threads=writer_threads)
     else:
-        features = dataset_features(cameras, cfg.image_size)
         ds = LeRobotDataset.create(
-            cfg.repo_id, FPS, features, root=work, robot_type="sawyer", use_videos=False, video_backend="pyav"
+            cfg.repo_id,
+            FPS,
+            dataset_features(cameras, cfg.image_size),
+            root=work,
+            robot_type="sawyer",
+            use_videos=False,
+            video_backend="pyav",
+            image_writer_threads=writer_threads,
         )
     bars_were_enabled = hf_logging.is_progress_bar_enabled()
     hf_logging.disable_progress_bar()  # one "Map" bar per saved episode otherwise

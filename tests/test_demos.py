@@ -79,6 +79,16 @@ def test_dataset_loads_with_declared_features(demos):
     assert np.abs(data["action"]).max() <= 1.0
 
 
+def test_camera_frames_are_stored_as_128px_images(tmp_path):
+    make_demos(tmp_path / "cam", "reach-v3", 1, cameras="corner2", max_steps=6)
+    ds = load(tmp_path / "cam")
+    feature = ds.meta.features["observation.images.corner2"]
+    assert feature["dtype"] == "image" and tuple(feature["shape"]) == (128, 128, 3)
+    first, last = ds[0]["observation.images.corner2"], ds[5]["observation.images.corner2"]
+    assert first.shape == (3, 128, 128) and 0.0 <= float(first.min()) and float(first.max()) <= 1.0
+    assert not first.equal(last)
+
+
 def test_scripted_experts_succeed_on_two_tasks(demos):
     eps = episodes(demos)
     for task in DEMO_TASKS.split(","):

@@ -6,7 +6,8 @@ it when no job may start now. Jobs only start on global steps that are multiples
 policy-driven engine sets it to the number of actions per decision, so every running episode takes its
 decisions on the same steps and each decision round is one batched policy call. A parked slot costs no
 simulation (in a ``SyncVectorEnv`` it costs nothing at all), so the alignment is free for state-only
-rollouts.
+rollouts. Jobs are handed out with task affinity (a slot stays on its task while that task has jobs left),
+so that each env builds few MuJoCo models.
 
 ``vectorization="sync"`` (default) steps all envs in this process; ``"async"`` gives each env a worker
 process (forkserver), which pays off with cameras or on machines with more cores than this one's two.
