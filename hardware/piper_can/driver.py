@@ -136,12 +136,13 @@ class PiperDriver:
     def estopped(self) -> bool:
         return self._estopped.is_set()
 
-    def connect(self) -> None:
-        """Open the bus, wait for the arm's feedback (joints, gripper, status, driver info) and ask
-        for the firmware version (it appears in ``state().firmware_version``)."""
+    def connect(self, listen_only: bool = False) -> None:
+        """Open the bus, wait for the arm's feedback (joints, gripper, status, driver info) and, unless
+        ``listen_only``, ask for the firmware version (it appears in ``state().firmware_version``)."""
         first = (*ID_JOINT_FEEDBACK, ID_GRIPPER_FEEDBACK, ID_ARM_STATUS, *ID_LOW_SPEED)
         self.link.open(first, self.config.connect_timeout_s)
-        self.link.send(encode(FirmwareQuery()))
+        if not listen_only:
+            self.link.send(encode(FirmwareQuery()))
 
     def close(self) -> None:
         """Release the bus without touching the arm (no disconnect policy)."""
@@ -186,8 +187,8 @@ class PiperDriver:
         enable bit, then sends 0x151 and waits for the status frame to report CAN mode.
         """
         timeout = self.config.enable_timeout_s
-        started = time.monotonic()
-        deadline = started + timeout
+        started = time.time()  # frames are stamped on this clock: only later ones count
+        deadline = time.monotonic() + timeout
         backoff = ENABLE_BACKOFF_START_S
         requests = 0
         while True:
@@ -211,7 +212,7 @@ class PiperDriver:
         self._select_mode(deadline)
 
     def _select_mode(self, deadline: float) -> None:
-        sent_at = time.monotonic()
+        sent_at = time.time()
         self.link.send(self._mode_frame())
 
         def in_can_mode(s: ArmState) -> bool:
@@ -227,7 +228,7 @@ class PiperDriver:
 
         Warning: a raised arm falls when its motors lose power.
         """
-        sent_at = time.monotonic()
+        sent_at = time.time()
         frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(False))
         self.link.send(*frames)
         self.link.send(*frames)
@@ -307,7 +308,7 @@ class PiperDriver:
         Warning: the firmware's reset cuts motor power for a moment, so a raised arm drops a little
         before the re-enable catches it.
         """
-        sent_at = time.monotonic()
+        sent_at = time.time()
         self.link.send(encode(EmergencyStop(EStopAction.RESUME)))
 
         def reset_seen(s: ArmState) -> bool:

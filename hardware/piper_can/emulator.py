@@ -86,6 +86,8 @@ _VALID_CTRL_MODES = {0x00, 0x01, 0x03, 0x04, 0x07}
 _VALID_MIT_MODES = {MIT_MODE_POSITION_VELOCITY, MIT_MODE_HIGH_FOLLOW, 0xFF}
 _REACHED_TOLERANCE_RAD = 1e-4
 _LIMIT_TOLERANCE_RAD = 1e-6
+_MAX_REAL_TIME_STEP_S = 0.1
+_ARM_IDS = FEEDBACK_IDS | set(ID_END_POSE)  # arm -> host frames (0x4AF only when it is not a query)
 
 
 def scripted_leader(t: float) -> tuple[tuple[float, ...], float]:
@@ -231,7 +233,7 @@ class PiperEmulator:
             self._latched = _Latched()
             self._rejected: set[int] = set()
             self.time_s = 0.0
-            self._last_low_speed_s = -math.inf
+            self._next_low_speed_s = cfg.period_s  # the first cycle carries 0x261..0x266
             self.ctrl_mode = CtrlMode.CAN if cfg.start_enabled else CtrlMode.STANDBY
             self.move_mode = MoveMode.J
             self.speed_percent = 100 if cfg.start_enabled else 0
@@ -266,9 +268,12 @@ class PiperEmulator:
         self._thread = None
 
     def _run(self) -> None:
+        """One cycle per period; the physics advances by the wall time that really passed (so a busy
+        machine delays frames, as a loaded bus would, but never slows the simulated arm down)."""
         cfg = self.config
         wall_period = cfg.period_s / cfg.rate_scale
-        next_tick = time.monotonic() + wall_period
+        last = time.monotonic()
+        next_tick = last + wall_period
         while not self._stop.is_set():
             remaining = next_tick - time.monotonic()
             while remaining > 0:
@@ -276,10 +281,12 @@ class PiperEmulator:
                 if msg is not None:
                     self.handle(msg)
                 remaining = next_tick - time.monotonic()
-            self._advance(cfg.period_s)
+            now = time.monotonic()
+            self._advance(min((now - last) * cfg.rate_scale, _MAX_REAL_TIME_STEP_S))
+            last = now
             next_tick += wall_period + (self._rng.uniform(0, cfg.jitter_s) if cfg.jitter_s else 0.0)
-            if time.monotonic() - next_tick > 0.1:  # fell far behind (machine busy): resynchronise
-                next_tick = time.monotonic()
+            if now - next_tick > 0.1:  # fell far behind (machine busy): resynchronise
+                next_tick = now
 
     # --------------------------------------------------------------------------- faults
     def inject_fault(self, kind: str, joint: int) -> None:
@@ -340,7 +347,7 @@ class PiperEmulator:
             return
         frame_id = msg.arbitration_id
         data = bytes(msg.data)
-        if frame_id in FEEDBACK_IDS and not (frame_id == ID_FIRMWARE and data[:1] == b"\x01"):
+        if frame_id in _ARM_IDS and not (frame_id == ID_FIRMWARE and data[:1] == b"\x01"):
             return  # another arm's feedback, or our own echoed back by the bus
         self.frame_log.append(LoggedFrame(self.time_s, "rx", frame_id, data))
         if self.silent:
@@ -561,9 +568,11 @@ class PiperEmulator:
             return []
         if self.role == "leader":
             return self._leader_frames()
-        low_speed = self.time_s - self._last_low_speed_s >= self.config.low_speed_period_s - 1e-9
-        if low_speed:
-            self._last_low_speed_s = self.time_s
+        low_speed = self.time_s >= self._next_low_speed_s - 1e-9
+        if low_speed:  # on an ideal 40 Hz grid, so late cycles do not lower the average rate
+            self._next_low_speed_s += self.config.low_speed_period_s
+            if self._next_low_speed_s <= self.time_s:  # far behind: restart the grid, no burst
+                self._next_low_speed_s = self.time_s + self.config.low_speed_period_s
         frames = self._frozen if self._frozen is not None else self._feedback_frames(low_speed)
         if self._frozen is not None and not low_speed:
             frames = [f for f in frames if f.arbitration_id not in ID_LOW_SPEED]

@@ -1,16 +1,13 @@
 """One python-can bus to a PiPER: a reader thread feeding a ``FeedbackCache``, a stale-feedback
 watchdog, and locked sends.
 
-Timestamps are this process's ``time.monotonic()`` at receipt, the same clock for every python-can
-interface. The watchdog watches a set of frame IDs (the joint frames) and trips when, for more than
-``stale_timeout_s``, no fresh frame of every watched ID arrived:
-
-* the receive queue is empty and the deadline passed (the bus went silent or the watched frames stopped), or
-* other frames keep arriving while a watched ID stays missing.
-
-A gap in *all* traffic longer than the timeout, seen while frames are still queued, means this reader
-was starved (or the socket dropped frames), not that the arm stopped: it restarts the evidence window
-instead of tripping.
+Every frame is stamped with its arrival time: python-can's ``msg.timestamp`` (the kernel's receive time
+on socketcan and udp_multicast, the send time on virtual), or this process's clock where an interface
+stamps frames on another clock. The watchdog watches a set of frame IDs (the joint frames) and counts
+as stale when some watched ID last *arrived* more than ``stale_timeout_s`` ago. The reader drains
+every queued frame before it judges, and trips (latched) when the bus went silent or the watched
+frames stopped; ``raise_if_stale`` applies the same test when asked, so a reader that fell behind
+(starved of CPU) cannot pass old positions off as fresh.
 """
 
 from __future__ import annotations
@@ -24,16 +21,14 @@ import can
 
 from .codec import (
     COMMAND_IDS,
+    DLC,
     FEEDBACK_IDS,
     ID_EMERGENCY_STOP,
     ID_FIRMWARE,
     ID_LIMIT_QUERY,
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
-    CodecError,
     Frame,
-    decode_command,
-    decode_feedback,
 )
 from .errors import FeedbackStaleError, PiperConnectionError
 from .state import ArmState, FeedbackCache
@@ -48,8 +43,12 @@ OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
 }
+_KEPT_IDS = FEEDBACK_IDS | OBSERVED_CONTROL_IDS
 _IDLE_WAIT_S = 0.05
 _POLL_S = 0.002
+# python-can timestamps on the time.time() clock for socketcan, udp_multicast and virtual; an interface
+# whose stamps are further off than this uses another clock (e.g. the adapter's), so use our own.
+_PLAUSIBLE_CLOCK_SKEW_S = 5.0
 
 
 def open_bus(interface: str, channel: str, bitrate: int, bus_options: Mapping[str, object]) -> can.BusABC:
@@ -100,8 +99,8 @@ class PiperLink:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._armed = False
+        self._armed_at = 0.0
         self._last_seen: dict[int, float] = {}
-        self._resume_ts = 0.0
         self._stale: FeedbackStaleError | None = None
         self.stale_at: float | None = None
 
@@ -135,8 +134,7 @@ class PiperLink:
 
     def arm_watchdog(self) -> None:
         """(Re)start watching: clears a previous trip; the window starts now."""
-        now = time.monotonic()
-        self._resume_ts = now
+        self._armed_at = time.time()
         self._stale = None
         self.stale_at = None
         self._armed = bool(self.watch_ids)
@@ -176,10 +174,13 @@ class PiperLink:
         return self._stale
 
     def raise_if_stale(self) -> None:
-        if self._stale is not None:
-            raise self._stale
+        """Raise ``FeedbackStaleError`` if the watchdog tripped, trips now, or the reader died."""
         if self._thread is None or not self._thread.is_alive():
             raise FeedbackStaleError(f"the CAN reader for {self.where} is not running; reconnect")
+        if self._armed:
+            self._check_age(time.time())
+        if self._stale is not None:
+            raise self._stale
 
     def wait_for(self, predicate: Callable[[ArmState], bool], timeout_s: float) -> bool:
         """Poll the state until ``predicate`` holds; False on timeout."""
@@ -197,66 +198,55 @@ class PiperLink:
 
     # ---------------------------------------------------------------------------- reader thread
     def _evidence_start(self) -> float:
-        """Since when the watched set has been incomplete: the oldest watched ID, or a traffic resume."""
+        """When the watched set was last complete: the oldest watched arrival (or the arming time)."""
         oldest = min((self._last_seen.get(i, 0.0) for i in self.watch_ids), default=0.0)
-        return max(oldest, self._resume_ts)
-
-    def _trip(self, now: float, reason: str) -> None:
-        if self._stale is None:
-            self.stale_at = now
-            self._stale = FeedbackStaleError(reason)
-            log.error("%s", reason)
+        return max(oldest, self._armed_at)
 
     def _check_age(self, now: float) -> None:
         age = now - self._evidence_start()
-        if age > self.stale_timeout_s:
-            self._trip(
-                now,
+        if age > self.stale_timeout_s and self._stale is None:
+            self.stale_at = now
+            self._stale = FeedbackStaleError(
                 f"stale feedback: no {self.watch_name} from the PiPER on {self.where} for {age * 1e3:.0f} ms "
-                f"(limit {self.stale_timeout_s * 1e3:.0f} ms); commands stopped",
+                f"(limit {self.stale_timeout_s * 1e3:.0f} ms); commands stopped"
             )
+            log.error("%s", self._stale)
 
     def _read_loop(self) -> None:
         bus = self._bus
         assert bus is not None
-        previous = time.monotonic()
         while not self._stop.is_set():
             wait = _IDLE_WAIT_S
             if self._armed and self._stale is None:
-                wait = min(max(self._evidence_start() + self.stale_timeout_s - time.monotonic(), 5e-4), wait)
+                wait = min(max(self._evidence_start() + self.stale_timeout_s - time.time(), 5e-4), wait)
             try:
                 msg = bus.recv(timeout=wait)
+                while True:  # drain everything queued before judging the age
+                    if msg is not None:
+                        self._handle(msg)
+                    now = time.time()
+                    msg = bus.recv(timeout=0)
+                    if msg is None:
+                        break
             except Exception as exc:  # the bus went away under us
-                self._trip(time.monotonic(), f"reading the CAN bus {self.where} failed: {exc}")
+                if self._stale is None:
+                    self.stale_at = time.time()
+                    self._stale = FeedbackStaleError(f"reading the CAN bus {self.where} failed: {exc}")
+                    log.error("%s", self._stale)
                 return
-            now = time.monotonic()
-            if msg is None:
-                if self._armed:
-                    self._check_age(now)
-                self.cache.roll_rates(now)
-                continue
-            if now - previous > self.stale_timeout_s:
-                self._resume_ts = now  # this reader was starved; frames were waiting for it
-            previous = now
-            self._handle(msg, now)
+            # The queue was empty at ``now``: nothing that arrived before ``now`` is still unread.
             if self._armed:
                 self._check_age(now)
             self.cache.roll_rates(now)
 
-    def _handle(self, msg: can.Message, now: float) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            return
+    def _handle(self, msg: can.Message) -> None:
         frame_id = msg.arbitration_id
-        try:
-            if frame_id in FEEDBACK_IDS:
-                decoded = decode_feedback(frame_id, msg.data)
-            elif frame_id in OBSERVED_CONTROL_IDS:
-                decoded = decode_command(frame_id, msg.data)
-            else:
-                return
-        except CodecError as exc:
-            self.bad_frames += 1
-            log.debug("ignoring malformed frame: %s", exc)
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id or frame_id not in _KEPT_IDS:
             return
-        self.cache.update(frame_id, decoded, now)
-        self._last_seen[frame_id] = now
+        if len(msg.data) != DLC:
+            self.bad_frames += 1
+            return
+        now = time.time()
+        arrived = msg.timestamp if abs(now - msg.timestamp) < _PLAUSIBLE_CLOCK_SKEW_S else now
+        self.cache.update(frame_id, bytes(msg.data), arrived)
+        self._last_seen[frame_id] = arrived

@@ -6,10 +6,11 @@ import threading
 from dataclasses import dataclass, field
 
 from .codec import (
+    ID_FIRMWARE,
+    ID_MOTOR_LIMITS,
     NUM_JOINTS,
     ArmStatus,
     ArmStatusCode,
-    FirmwareChunk,
     GripperCommand,
     GripperFeedback,
     HighSpeedInfo,
@@ -18,6 +19,8 @@ from .codec import (
     LowSpeedInfo,
     ModeControl,
     MotorLimits,
+    decode_command,
+    decode_feedback,
     parse_firmware_version,
 )
 from .errors import Fault
@@ -34,7 +37,7 @@ _NOT_FAULTS = {
 
 @dataclass(frozen=True, slots=True)
 class Stamped[T]:
-    """A value and the CAN timestamp (seconds, ``time.time()`` epoch) of the frame it came from."""
+    """A value and when its frame arrived (seconds, ``time.time()`` epoch)."""
 
     value: T
     timestamp: float
@@ -106,51 +109,30 @@ def _status_name(code: int) -> str:
 
 
 class FeedbackCache:
-    """Latest value per frame kind, written by the reader thread and read as ``ArmState`` snapshots."""
+    """The latest raw frame per ID, stored by the reader thread (no decoding on its hot path) and
+    decoded into an ``ArmState`` snapshot on demand."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._joints: list[Stamped[float] | None] = [None] * NUM_JOINTS
-        self._leader_joints: list[Stamped[float] | None] = [None] * NUM_JOINTS
-        self._high: list[Stamped[HighSpeedInfo] | None] = [None] * NUM_JOINTS
-        self._low: list[Stamped[LowSpeedInfo] | None] = [None] * NUM_JOINTS
-        self._gripper: Stamped[GripperFeedback] | None = None
-        self._status: Stamped[ArmStatus] | None = None
-        self._leader_gripper: Stamped[GripperCommand] | None = None
-        self._leader_mode: Stamped[ModeControl] | None = None
+        self._latest: dict[int, tuple[bytes, float]] = {}
         self._limits: dict[int, MotorLimits] = {}
         self._firmware_text = b""
         self._counts: dict[int, int] = {}
         self._rates: dict[int, float] = {}
         self._window_start: float | None = None
 
-    def update(self, frame_id: int, message: object, timestamp: float) -> None:
-        """Store one decoded frame (feedback, or control frames of another host / linked leader)."""
+    def update(self, frame_id: int, data: bytes, timestamp: float) -> None:
+        """Store one 8-byte frame (feedback, or control frames of another host / linked leader)."""
+        if frame_id == ID_MOTOR_LIMITS:  # one reply per motor: keep all of them
+            limits = decode_feedback(frame_id, data)
+            with self._lock:
+                self._limits[limits.motor] = limits
+        elif frame_id == ID_FIRMWARE:  # a version text spread over several frames
+            with self._lock:
+                self._firmware_text = (self._firmware_text + data)[-_FIRMWARE_TEXT_MAX:]
         with self._lock:
+            self._latest[frame_id] = (data, timestamp)
             self._counts[frame_id] = self._counts.get(frame_id, 0) + 1
-            match message:
-                case JointFeedback(first_joint=j, positions_rad=(a, b)):
-                    self._joints[j - 1] = Stamped(a, timestamp)
-                    self._joints[j] = Stamped(b, timestamp)
-                case JointCommand(first_joint=j, positions_rad=(a, b)):
-                    self._leader_joints[j - 1] = Stamped(a, timestamp)
-                    self._leader_joints[j] = Stamped(b, timestamp)
-                case GripperFeedback():
-                    self._gripper = Stamped(message, timestamp)
-                case ArmStatus():
-                    self._status = Stamped(message, timestamp)
-                case HighSpeedInfo(joint=j):
-                    self._high[j - 1] = Stamped(message, timestamp)
-                case LowSpeedInfo(joint=j):
-                    self._low[j - 1] = Stamped(message, timestamp)
-                case GripperCommand():
-                    self._leader_gripper = Stamped(message, timestamp)
-                case ModeControl():
-                    self._leader_mode = Stamped(message, timestamp)
-                case MotorLimits(motor=m):
-                    self._limits[m] = message
-                case FirmwareChunk(data=data):
-                    self._firmware_text = (self._firmware_text + data)[-_FIRMWARE_TEXT_MAX:]
 
     def roll_rates(self, now: float) -> None:
         """Close the rate window when it is ``RATE_WINDOW_S`` old: rate = frames / elapsed."""
@@ -168,16 +150,40 @@ class FeedbackCache:
 
     def snapshot(self) -> ArmState:
         with self._lock:
-            return ArmState(
-                joints=tuple(self._joints),
-                gripper=self._gripper,
-                status=self._status,
-                high_speed=tuple(self._high),
-                low_speed=tuple(self._low),
-                leader_joints=tuple(self._leader_joints),
-                leader_gripper=self._leader_gripper,
-                leader_mode=self._leader_mode,
-                motor_limits=dict(self._limits),
-                firmware_version=parse_firmware_version(self._firmware_text),
-                rates_hz=dict(self._rates),
-            )
+            latest = dict(self._latest)
+            limits = dict(self._limits)
+            firmware_text = self._firmware_text
+            rates = dict(self._rates)
+        joints: list[Stamped[float] | None] = [None] * NUM_JOINTS
+        leader_joints: list[Stamped[float] | None] = [None] * NUM_JOINTS
+        high: list[Stamped[HighSpeedInfo] | None] = [None] * NUM_JOINTS
+        low: list[Stamped[LowSpeedInfo] | None] = [None] * NUM_JOINTS
+        found: dict[type, Stamped] = {}
+        for frame_id, (data, timestamp) in latest.items():
+            if frame_id in (ID_MOTOR_LIMITS, ID_FIRMWARE):
+                continue
+            message = decode_feedback(frame_id, data) or decode_command(frame_id, data)
+            match message:
+                case JointFeedback(first_joint=j, positions_rad=(a, b)):
+                    joints[j - 1], joints[j] = Stamped(a, timestamp), Stamped(b, timestamp)
+                case JointCommand(first_joint=j, positions_rad=(a, b)):
+                    leader_joints[j - 1], leader_joints[j] = Stamped(a, timestamp), Stamped(b, timestamp)
+                case HighSpeedInfo(joint=j):
+                    high[j - 1] = Stamped(message, timestamp)
+                case LowSpeedInfo(joint=j):
+                    low[j - 1] = Stamped(message, timestamp)
+                case GripperFeedback() | ArmStatus() | GripperCommand() | ModeControl():
+                    found[type(message)] = Stamped(message, timestamp)
+        return ArmState(
+            joints=tuple(joints),
+            gripper=found.get(GripperFeedback),
+            status=found.get(ArmStatus),
+            high_speed=tuple(high),
+            low_speed=tuple(low),
+            leader_joints=tuple(leader_joints),
+            leader_gripper=found.get(GripperCommand),
+            leader_mode=found.get(ModeControl),
+            motor_limits=limits,
+            firmware_version=parse_firmware_version(firmware_text),
+            rates_hz=rates,
+        )

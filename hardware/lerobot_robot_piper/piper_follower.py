@@ -1,0 +1,105 @@
+"""LeRobot robot ``piper_follower``: a PiPER arm through the safe ``piper_can`` driver."""
+
+from __future__ import annotations
+
+import logging
+from functools import cached_property
+
+from lerobot.cameras import make_cameras_from_configs
+from lerobot.robots.robot import Robot
+from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+from piper_can.driver import PiperDriver
+
+from .config_piper_follower import PiperFollowerConfig
+from .features import from_action, motor_features, to_action
+
+log = logging.getLogger(__name__)
+
+
+class PiperFollower(Robot):
+    """Observations and actions are ``joint_1.pos … joint_6.pos`` (rad) and ``gripper.pos`` (m), plus
+    one ``(h, w, 3)`` image per camera. Targets are clamped to the soft limits and to
+    ``max_relative_target`` before they reach the bus; ``send_action`` returns what was sent."""
+
+    config_class = PiperFollowerConfig
+    name = "piper_follower"
+
+    def __init__(self, config: PiperFollowerConfig):
+        super().__init__(config)
+        self.config = config
+        self.driver = PiperDriver(config.driver_config())
+        self.cameras = make_cameras_from_configs(config.cameras)
+
+    @cached_property
+    def observation_features(self) -> dict[str, type | tuple]:
+        cameras = {name: (cfg.height, cfg.width, 3) for name, cfg in self.config.cameras.items()}
+        return {**motor_features(), **cameras}
+
+    @cached_property
+    def action_features(self) -> dict[str, type]:
+        return motor_features()
+
+    @property
+    def is_connected(self) -> bool:
+        return self.driver.is_connected
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True  # the PiPER reports absolute joint angles; nothing to calibrate
+
+    def calibrate(self) -> None:
+        """Nothing to do: no interactive zeroing."""
+
+    def configure(self) -> None:
+        """Nothing beyond ``connect``: the enable handshake already selected the motion mode."""
+
+    @check_if_already_connected
+    def connect(self, calibrate: bool = True) -> None:
+        self.driver.connect(listen_only=self.config.hardware_linked_leader)
+        try:
+            self.driver.checked_state()
+            if self.config.hardware_linked_leader:
+                log.info("%s: hardware-linked leader on %s; observing only", self, self.driver.link.where)
+            else:
+                self.driver.enable()
+            for cam in self.cameras.values():
+                cam.connect()
+        except BaseException:
+            self.driver.close()
+            raise
+        self.configure()
+        log.info("%s connected on %s", self, self.driver.link.where)
+
+    @check_if_not_connected
+    def get_observation(self) -> dict:
+        state = self.driver.checked_state()
+        assert state.joint_positions_rad is not None and state.gripper is not None
+        obs: dict = to_action(state.joint_positions_rad, state.gripper.value.opening_m)
+        for name, cam in self.cameras.items():
+            obs[name] = cam.read_latest()
+        return obs
+
+    @check_if_not_connected
+    def send_action(self, action: dict) -> dict:
+        joints, gripper = from_action(action)
+        if self.config.hardware_linked_leader:
+            # The leader drives this arm through the hardware link; sending would fight it.
+            return to_action(joints, gripper)
+        sent = self.driver.command(joints, gripper)
+        assert sent.gripper_m is not None
+        return to_action(sent.joints_rad, sent.gripper_m)
+
+    def disconnect(self) -> None:
+        """Best effort and never decorated: the disconnect policy runs even if a camera died."""
+        try:
+            if self.config.hardware_linked_leader:
+                self.driver.close()
+            else:
+                self.driver.disconnect()
+        finally:
+            for cam in self.cameras.values():
+                try:
+                    if cam.is_connected:
+                        cam.disconnect()
+                except Exception as exc:
+                    log.warning("camera disconnect failed: %s", exc)

@@ -1,0 +1,232 @@
+"""The LeRobot plugin in-process: registration, features, config checks, follower and leader modes."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import can
+import pytest
+from lerobot.robots import make_robot_from_config
+from lerobot.robots.config import RobotConfig
+from lerobot.teleoperators import make_teleoperator_from_config
+from lerobot.teleoperators.config import TeleoperatorConfig
+from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
+from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig, cli_errors
+from piper_can import codec
+from piper_can.emulator import EmulatorConfig, PiperEmulator
+from piper_can.errors import FeedbackStaleError, PiperConnectionError
+from piper_rig import unique_virtual_channel, wait_until
+
+KEYS = ["joint_1.pos", "joint_2.pos", "joint_3.pos", "joint_4.pos", "joint_5.pos", "joint_6.pos", "gripper.pos"]
+LEADER_POSE = ((0.3, 0.5, -0.4, 0.1, 0.2, -0.3), 0.04)
+
+
+class Arm:
+    """An emulated PiPER in real time on its own bus."""
+
+    def __init__(self, channel: str, config: EmulatorConfig | None = None):
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.emulator = PiperEmulator(self.bus, config)
+        self.emulator.start()
+
+    def close(self) -> None:
+        self.emulator.stop()
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def arms():
+    made: list[Arm] = []
+
+    def make(channel: str, config: EmulatorConfig | None = None) -> Arm:
+        made.append(Arm(channel, config))
+        return made[-1]
+
+    yield make
+    for arm in made:
+        arm.close()
+
+
+def follower_config(channel: str, tmp_path, **kw) -> PiperFollowerConfig:
+    kw.setdefault("feedback_timeout_s", 0.5)  # the emulators share this process (and a busy machine)
+    return PiperFollowerConfig(interface="virtual", channel=channel, calibration_dir=tmp_path, **kw)
+
+
+def leader_config(channel: str, tmp_path, **kw) -> PiperLeaderConfig:
+    kw.setdefault("timeout_s", 0.5)
+    return PiperLeaderConfig(interface="virtual", channel=channel, calibration_dir=tmp_path, **kw)
+
+
+def test_types_are_registered_and_lerobot_finds_the_classes(tmp_path):
+    assert RobotConfig.get_choice_class("piper_follower") is PiperFollowerConfig
+    assert TeleoperatorConfig.get_choice_class("piper_leader") is PiperLeaderConfig
+    robot = make_robot_from_config(follower_config("x", tmp_path))
+    teleop = make_teleoperator_from_config(PiperLeaderConfig(channel="y", calibration_dir=tmp_path))
+    assert isinstance(robot, PiperFollower) and robot.name == "piper_follower"
+    assert isinstance(teleop, PiperLeader) and teleop.name == "piper_leader"
+
+
+def test_features_are_known_before_connecting(tmp_path):
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+
+    cam = OpenCVCameraConfig(index_or_path=0, width=64, height=48, fps=30)
+    robot = PiperFollower(follower_config("x", tmp_path, cameras={"cam_high": cam}))
+    assert list(robot.action_features) == KEYS and all(v is float for v in robot.action_features.values())
+    assert robot.observation_features == {**dict.fromkeys(KEYS, float), "cam_high": (48, 64, 3)}
+    leader = PiperLeader(PiperLeaderConfig(channel="y", calibration_dir=tmp_path))
+    assert leader.action_features == robot.action_features and leader.feedback_features == {}
+    assert not robot.is_connected and robot.is_calibrated
+    with pytest.raises(DeviceNotConnectedError):
+        robot.get_observation()
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"motion_mode": "mit"}, "motion_mode"),
+        ({"max_relative_target": {"joint_1.pos": 0.1}}, "max_relative_target"),
+        ({"joint_limits": {"joint_1": (-1.0, 1.0)}}, "joint_limits"),
+        ({"disconnect_policy": "drop"}, "drop"),
+        ({"speed_percent": 150}, "speed_percent"),
+    ],
+)
+def test_bad_follower_settings_are_refused(tmp_path, kw, match):
+    with pytest.raises(ValueError, match=match):
+        follower_config("x", tmp_path, **kw)
+    with pytest.raises(ValueError, match="source"):
+        PiperLeaderConfig(source="both")
+
+
+def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel)
+    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot.connect()
+    try:
+        with pytest.raises(DeviceAlreadyConnectedError):
+            robot.connect()
+        assert arm.emulator.enabled == (True,) * 6
+        obs = robot.get_observation()
+        assert list(obs) == KEYS and obs["joint_2.pos"] == 0.0
+        far = dict(zip(KEYS, (2.0, 2.0, -2.0, 0.0, 0.0, 0.0, 0.07), strict=True))
+        sent = robot.send_action(far)
+        assert list(sent) == KEYS
+        assert [sent[k] for k in KEYS] == pytest.approx([0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 0.07])
+        near = dict(zip(KEYS, (0.1, 0.1, -0.1, 0.0, 0.0, 0.0, 0.01), strict=True))
+        assert robot.send_action(near) == pytest.approx(near)
+        assert wait_until(lambda: arm.emulator.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
+        with pytest.raises(ValueError, match="missing gripper.pos"):
+            robot.send_action({k: 0.0 for k in KEYS[:6]})
+    finally:
+        robot.disconnect()
+    assert not robot.is_connected and arm.emulator.enabled == (True,) * 6  # "hold" by default
+
+
+def test_per_key_max_relative_target(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arms(channel)
+    cap = dict(zip(KEYS, (0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.001), strict=True))
+    robot = PiperFollower(follower_config(channel, tmp_path, max_relative_target=cap))
+    robot.connect()
+    try:
+        sent = robot.send_action(dict(zip(KEYS, (1.0, 1.0, -1.0, 1.0, 1.0, 1.0, 0.05), strict=True)))
+        assert [sent[k] for k in KEYS] == pytest.approx([0.01, 0.02, -0.03, 0.04, 0.05, 0.06, 0.001])
+    finally:
+        robot.disconnect()
+
+
+def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel, EmulatorConfig(role="leader"))
+    arm.emulator.leader_pose = LEADER_POSE
+    leader = PiperLeader(leader_config(channel, tmp_path))
+    leader.connect()
+    try:
+        action = leader.get_action()
+        expected = [*LEADER_POSE[0], LEADER_POSE[1]]
+        assert list(action) == KEYS and [action[k] for k in KEYS] == pytest.approx(expected, abs=1e-5)
+        arm.emulator.silent = True  # unplugged
+        assert wait_until(lambda: leader.link.stale_error is not None, timeout=1.0)
+        with pytest.raises(FeedbackStaleError, match="no leader joint frames"):
+            leader.get_action()
+    finally:
+        leader.disconnect()
+
+
+def test_leader_moved_by_hand_is_read_from_its_feedback(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel)  # an ordinary arm, disabled: it can be moved by hand
+    leader = PiperLeader(leader_config(channel, tmp_path, source="feedback"))
+    leader.connect()
+    try:
+        arm.emulator.set_position(1, 0.5)
+        assert wait_until(lambda: leader.get_action()["joint_1.pos"] == pytest.approx(0.5, abs=1e-5))
+    finally:
+        leader.disconnect()
+
+
+def test_hardware_linked_leader_drives_the_follower_and_the_pc_only_listens(arms, tmp_path):
+    channel = unique_virtual_channel()
+    follower_arm = arms(channel, EmulatorConfig(start_enabled=True))
+    leader_arm = arms(channel, EmulatorConfig(role="leader"))
+    leader_arm.emulator.leader_pose = LEADER_POSE
+    monitor = can.Bus(interface="virtual", channel=channel)
+    robot = PiperFollower(follower_config(channel, tmp_path, hardware_linked_leader=True))
+    teleop = PiperLeader(leader_config(channel, tmp_path))
+    try:
+        teleop.connect()
+        robot.connect()
+        expected = pytest.approx([*LEADER_POSE[0], LEADER_POSE[1]], abs=1e-4)
+        deadline = time.monotonic() + 3.0
+        while [robot.get_observation()[k] for k in KEYS] != expected:
+            assert time.monotonic() < deadline, robot.get_observation()
+            action = teleop.get_action()
+            assert robot.send_action(action) == action
+            robot.send_action(dict.fromkeys(KEYS, 0.01))  # would be visible on the bus if it were sent
+            time.sleep(0.01)
+    finally:
+        robot.disconnect()
+        teleop.disconnect()
+    frames = list(iter(lambda: monitor.recv(timeout=0), None))
+    monitor.shutdown()
+    host_ids = {m.arbitration_id for m in frames} & {0x150, 0x470, 0x471, 0x472, 0x4AF}
+    assert host_ids == set()  # no enable, e-stop, role or query frame from the PC
+    targets = [codec.decode_command(0x155, m.data).positions_rad for m in frames if m.arbitration_id == 0x155]
+    assert targets and all(t == pytest.approx(LEADER_POSE[0][:2], abs=1e-5) for t in targets)
+    assert follower_arm.emulator.joints_rad == pytest.approx(LEADER_POSE[0], abs=1e-4)
+
+
+def test_connect_failure_releases_the_bus(tmp_path):
+    robot = PiperFollower(follower_config(unique_virtual_channel(), tmp_path, connect_timeout_s=0.2))
+    with pytest.raises(PiperConnectionError, match="no PiPER heard"):
+        robot.connect()
+    assert not robot.is_connected
+    robot.disconnect()  # harmless when not connected
+
+
+def test_cli_error_hook_prints_one_line_for_our_errors(capsys, monkeypatch):
+    seen = []
+    monkeypatch.setattr(cli_errors, "_previous_hook", lambda *args: seen.append(args))
+    cli_errors.install()
+    try:
+        sys.excepthook(PiperConnectionError, PiperConnectionError("cannot open CAN bus x:y"), None)
+        other = ValueError("not ours")
+        sys.excepthook(ValueError, other, None)
+    finally:
+        monkeypatch.setattr(sys, "excepthook", sys.__excepthook__)
+    assert capsys.readouterr().err == "error: cannot open CAN bus x:y\n"
+    assert seen == [(ValueError, other, None)]
+
+
+def test_radians_are_the_unit(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel, EmulatorConfig(initial_pose_rad=(math.radians(30), 0.5, -0.5, 0.0, 0.0, 0.0)))
+    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot.connect()
+    try:
+        assert robot.get_observation()["joint_1.pos"] == pytest.approx(math.radians(30), abs=1e-5)
+        assert arm.emulator.enabled == (True,) * 6
+    finally:
+        robot.disconnect()
