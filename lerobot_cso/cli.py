@@ -10,13 +10,19 @@ from collections.abc import Callable
 
 from lerobot.utils.import_utils import register_third_party_plugins
 
+from lerobot_cso.cso.rsft import rsft_main
+from lerobot_cso.cso.spo import spo_main
 from lerobot_cso.demos import demos_main
 from lerobot_cso.errors import UsageError
 from lerobot_cso.evaluation import eval_main
+from lerobot_cso.pipeline import pipeline_main
 
 SUBCOMMANDS: dict[str, Callable[[], object]] = {
     "demos": demos_main,
     "eval": eval_main,
+    "rsft": rsft_main,
+    "spo": spo_main,
+    "pipeline": pipeline_main,
 }
 
 
