@@ -177,7 +177,12 @@ class PiperLink:
         """Raise ``FeedbackStaleError`` if the watchdog tripped, trips now, or the reader died."""
         if self._thread is None or not self._thread.is_alive():
             raise FeedbackStaleError(f"the CAN reader for {self.where} is not running; reconnect")
-        if self._armed:
+        if self._armed and self._stale is None:
+            # Frames may be queued for a reader that merely waits for the GIL: give it up to one
+            # timeout to drain them before judging.
+            deadline = time.monotonic() + self.stale_timeout_s
+            while time.time() - self._evidence_start() > self.stale_timeout_s and time.monotonic() < deadline:
+                time.sleep(_POLL_S / 4)
             self._check_age(time.time())
         if self._stale is not None:
             raise self._stale

@@ -134,6 +134,21 @@ def test_watchdog_fires_within_three_periods_and_stops_commanding(watchdog_rig, 
     assert motion_frames(rig.drain()) == []
 
 
+def test_a_reader_that_falls_behind_cannot_pass_old_positions_off_as_fresh(rig):
+    handle = rig.driver.link._handle
+
+    def slow_handle(msg):  # a CPU-starved reader: 1 ms per frame while ~3000 frames/s arrive
+        time.sleep(0.001)
+        handle(msg)
+
+    rig.driver.link._handle = slow_handle
+    deadline = time.monotonic() + 3.0
+    with pytest.raises(FeedbackStaleError, match="stale feedback"):
+        while time.monotonic() < deadline:
+            rig.driver.command(POSE, 0.02)
+            time.sleep(0.01)
+
+
 # ------------------------------------------------------------------------ clamps and commands
 def test_step_limit_follows_lerobot_max_relative_target(rig):
     sent = rig.driver.command([2.0, 2.0, -2.0, 1.5, 1.0, 2.0], 0.07)

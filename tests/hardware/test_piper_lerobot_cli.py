@@ -198,6 +198,78 @@ def test_replay_sends_the_recorded_actions(recorded, arms, home):
     )
 
 
+TINY_CSO = [
+    "--policy.type=cso",
+    "--policy.n_autoencoder_steps=1",
+    "--policy.ae_dim=32",
+    "--policy.ae_heads=2",
+    "--policy.ae_encoder_layers=1",
+    "--policy.ae_decoder_layers=1",
+    "--policy.prior_dim=48",
+    "--policy.prior_heads=2",
+    "--policy.prior_layers=2",
+    "--policy.state_embed_dim=16",
+    "--policy.device=cpu",
+    "--policy.push_to_hub=false",
+]
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(recorded, home) -> Path:
+    """A tiny ``cso`` policy trained for 2 steps on the recorded episodes (state only, 7-D actions)."""
+    root, _ = recorded
+    out = home / "train"
+    run = run_cli(
+        "lerobot-train",
+        [
+            *TINY_CSO,
+            "--dataset.repo_id=local/piper_demo",
+            f"--dataset.root={root}",
+            f"--output_dir={out}",
+            "--steps=2",
+            "--save_freq=2",
+            "--batch_size=8",
+            "--num_workers=0",
+            "--wandb.enable=false",
+        ],
+        home,
+    )
+    assert run.returncode == 0, explain(run)
+    return out / "checkpoints" / "last" / "pretrained_model"
+
+
+def test_rollout_runs_a_tiny_cso_policy_on_the_follower(tiny_checkpoint, arms, home):
+    follower, _ = arms
+    follower_bus = ChannelRecorder(follower.group, follower.port)
+    try:
+        out = run_cli(
+            "lerobot-rollout",
+            [
+                "--strategy.type=base",
+                f"--policy.path={tiny_checkpoint}",
+                "--robot.type=piper_follower",
+                *follower.args("robot"),
+                *ROBUST,
+                f"--task={TASK}",
+                "--duration=2",
+                "--fps=30",
+                "--device=cpu",
+            ],
+            home,
+        )
+    finally:
+        follower_bus.stop()
+    assert out.returncode == 0, explain(out)
+    commands = np.array([c.joints_rad for c in follower_bus.commands.joints])
+    feedback = np.array([f.joints_rad for f in follower_bus.feedback.joints])
+    assert len(commands) > 20  # the policy's actions reached the arm (2 s at 30 Hz, then the way home)
+    lower, upper = np.array(SDK_SOFT_LIMITS.joints_rad).T
+    assert np.all(commands >= lower - 1e-6) and np.all(commands <= upper + 1e-6)
+    assert np.abs(feedback - feedback[0]).max() > 0.01  # the policy moved the arm
+    # Rollout's teardown walks back to where it started, then disconnects ("hold": the arm stays there).
+    assert np.abs(feedback[-1] - feedback[0]).max() < 1e-3
+
+
 @pytest.mark.parametrize(
     ("cli", "args", "message"),
     [
