@@ -20,7 +20,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import can
@@ -91,7 +91,7 @@ _ARM_IDS = FEEDBACK_IDS | set(ID_END_POSE)  # arm -> host frames (0x4AF only whe
 
 
 def scripted_leader(t: float) -> tuple[tuple[float, ...], float]:
-    """Default leader trajectory: slow sines (< 0.4 rad/s) around a pose well inside the limits."""
+    """Default leader trajectory: slow sines (< 0.5 rad/s) around a pose well inside the limits."""
     centre = (0.0, 0.8, -0.8, 0.0, 0.3, 0.0)
     amplitude = (0.4, 0.3, 0.3, 0.4, 0.3, 0.5)
     joints = tuple(
@@ -168,11 +168,6 @@ class _Gripper:
     fault_bits: int = 0
 
 
-@dataclass
-class _Latched:
-    pairs: dict[int, tuple[float, float]] = field(default_factory=dict)
-
-
 class PiperEmulator:
     """A simulated PiPER on ``bus``. Inspect ``joints_rad``, ``enabled``, ``gripper_m``, ``ctrl_mode``,
     ``ignored`` (reason -> count) and ``frame_log`` in tests."""
@@ -230,7 +225,7 @@ class PiperEmulator:
             self._joints = [_Joint(p, p, enabled=cfg.start_enabled) for p in pose]
             self._gripper = _Gripper(enabled=cfg.start_enabled)
             self._pending: list[_PendingEnable] = []
-            self._latched = _Latched()
+            self._latched: dict[int, tuple[float, float]] = {}  # JointCtrl pairs by first joint
             self._rejected: set[int] = set()
             self.time_s = 0.0
             self._next_low_speed_s = cfg.period_s  # the first cycle carries 0x261..0x266
@@ -397,7 +392,7 @@ class PiperEmulator:
                 j.target = j.position
             self._gripper.enabled = False
             self._pending.clear()
-            self._latched.pairs.clear()
+            self._latched.clear()
             self.ctrl_mode = CtrlMode.STANDBY
             self._enables_since_reset = 0
             self._needs_reset_to_leave_high_follow = False
@@ -438,13 +433,13 @@ class PiperEmulator:
         if reason is not None:
             self._ignore(reason, msg)
             return
-        self._latched.pairs[first] = cmd.positions_rad
-        if self.config.apply_joint_targets == "full" and len(self._latched.pairs) < 3:
+        self._latched[first] = cmd.positions_rad
+        if self.config.apply_joint_targets == "full" and len(self._latched) < 3:
             return
         targets: dict[int, float] = {}
-        for pair_first, pair in self._latched.pairs.items():
+        for pair_first, pair in self._latched.items():
             targets[pair_first], targets[pair_first + 1] = pair
-        self._latched.pairs.clear()
+        self._latched.clear()
         bounds = {j: self.config.limits.joints_rad[j - 1] for j in targets}
         outside = {j for j, t in targets.items() if not bounds[j][0] <= t <= bounds[j][1]}
         if outside and self.config.limit_policy == "reject":

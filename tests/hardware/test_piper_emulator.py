@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 from collections.abc import Iterator
 
@@ -293,4 +294,33 @@ def test_two_arms_on_two_channels_do_not_mix():
     right.step(100)
     assert left.emulator.joints_rad[0] == pytest.approx(0.2, abs=1e-5) and right.emulator.joints_rad[0] == 0.0
     for b in [*left_buses, *right_buses]:
+        b.shutdown()
+
+
+def test_strict_firmware_needs_a_reset_to_leave_high_follow():
+    host, buses = make_host(EmulatorConfig(strict=True))
+    host.enable_can_mode(mit=0xAD)
+    host.send(ModeControl(1, 1, 50, 0x00))
+    host.step()
+    assert host.emulator.mit_mode == 0xAD and host.emulator.ignored["leaving high-follow without reset"] == 1
+    host.send(EmergencyStop(EStopAction.RESUME), ModeControl(1, 1, 50, 0x00))
+    host.step()
+    assert host.emulator.mit_mode == 0x00
+    for b in buses:
+        b.shutdown()
+
+
+def test_real_time_mode_runs_at_the_scaled_rate_with_jitter():
+    host, buses = make_host(EmulatorConfig(rate_scale=2.0, jitter_s=0.001, profile="light"))
+    host.emulator.start()
+    time.sleep(0.5)
+    host.emulator.stop()
+    frames = []
+    while (msg := host.bus.recv(timeout=0)) is not None:
+        frames.append(msg)
+    status_frames = sum(m.arbitration_id == 0x2A1 for m in frames)
+    # 400 Hz nominal for 0.5 s, each cycle up to 1 ms late (mean 0.5 ms): ~167 frames; a busy machine
+    # only ever makes fewer.
+    assert 100 < status_frames <= 200
+    for b in buses:
         b.shutdown()
