@@ -56,9 +56,19 @@ class EmulatorProcess:
         return self.process.returncode
 
 
+EMULATOR_LIFETIME_S = 900  # bound: an emulator left behind by a killed test run ends by itself
+
+
 def start_emulator(group: str, port: int, *extra: str, timeout: float = 30.0) -> EmulatorProcess:
     """Start ``piper-emulator`` and wait for its ready line."""
-    cmd = [str(BIN / "piper-emulator"), "--interface=udp_multicast", f"--channel={group}", f"--port={port}", *extra]
+    cmd = [
+        str(BIN / "piper-emulator"),
+        "--interface=udp_multicast",
+        f"--channel={group}",
+        f"--port={port}",
+        f"--duration={EMULATOR_LIFETIME_S}",
+        *extra,
+    ]
     process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     emulator = EmulatorProcess(group, port, process)
     ready: list[str] = []
