@@ -7,6 +7,7 @@ import sys
 import time
 
 import can
+import numpy as np
 import pytest
 from lerobot.robots import make_robot_from_config
 from lerobot.robots.config import RobotConfig
@@ -230,3 +231,38 @@ def test_radians_are_the_unit(arms, tmp_path):
         assert arm.emulator.enabled == (True,) * 6
     finally:
         robot.disconnect()
+
+
+class StubCamera:
+    """Stands in for an OpenCV camera (none on the test machine): same calls, a fixed frame."""
+
+    def __init__(self, height: int, width: int):
+        self.frame = np.full((height, width, 3), 7, dtype=np.uint8)
+        self.is_connected = False
+
+    def connect(self) -> None:
+        self.is_connected = True
+
+    def read_latest(self, max_age_ms: int = 500):
+        return self.frame
+
+    def disconnect(self) -> None:
+        self.is_connected = False
+
+
+def test_camera_frames_join_the_observation(arms, tmp_path):
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+
+    channel = unique_virtual_channel()
+    arms(channel)
+    cam = OpenCVCameraConfig(index_or_path=0, width=64, height=48, fps=30)
+    robot = PiperFollower(follower_config(channel, tmp_path, cameras={"cam_high": cam}))
+    robot.cameras["cam_high"] = stub = StubCamera(48, 64)
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        assert obs["cam_high"] is stub.frame and obs["cam_high"].shape == robot.observation_features["cam_high"]
+        assert list(obs) == [*KEYS, "cam_high"]
+    finally:
+        robot.disconnect()
+    assert not stub.is_connected
