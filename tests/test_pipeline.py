@@ -1,0 +1,100 @@
+"""`lerobot-cso pipeline` as a real subprocess: a tiny end-to-end run, a rerun that skips every stage, bad configs."""
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from lerobot_cso.cli import main
+
+BIN = Path(sys.executable).parent
+ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+STAGES = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")
+TASKS = ("drawer-close-v3", "button-press-v3")
+
+# Two easy tasks and a tiny policy: IL solves drawer-close and sometimes button-press, so R-SFT finds
+# successes on both.
+TINY = """
+tasks: {tasks}
+output_dir: {out}
+torch_threads: 1
+demos: {{episodes_per_task: 8, num_envs: 2}}
+il:
+  steps: 200
+  n_autoencoder_steps: 80
+  batch_size: 16
+  num_workers: 1
+  save_freq: 100
+  log_freq: 50
+  policy: {{device: cpu, ae_dim: 32, ae_heads: 2, ae_encoder_layers: 1, ae_decoder_layers: 1, prior_dim: 48,
+           prior_heads: 2, prior_layers: 2, state_embed_dim: 16, optimizer_lr: 0.001, optimizer_min_lr: 0.0001}}
+eval: {{episodes_per_task: 4, num_envs: 4, max_steps: 150}}
+rsft: {{successes_per_task: 2, n_strikes: 4, states_per_round: 1, max_states_per_task: 20, num_envs: 4, epochs: 1,
+       batch_size: 16}}
+spo: {{iterations: 1, groups_per_iteration: 2, group_size: 4, epochs: 1, minibatch_trajectories: 4, num_envs: 4,
+      max_draw_factor: 4}}
+"""
+
+
+def pipeline(*args: str) -> subprocess.CompletedProcess:
+    cmd = [str(BIN / "lerobot-cso"), "pipeline", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=900)
+
+
+def final_table(stdout: str) -> str:
+    lines = stdout.splitlines()
+    start = max(i for i, line in enumerate(lines) if line.startswith("| task | IL | R-SFT | CSO |"))
+    return "\n".join(lines[start : start + len(TASKS) + 3])
+
+
+@pytest.fixture
+def tiny_config(tmp_path: Path) -> Path:
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.format(tasks=",".join(TASKS), out=tmp_path / "run"))
+    return path
+
+
+def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
+    first = pipeline(f"--config_path={tiny_config}")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    assert all(f"[pipeline] {stage}: running" in first.stdout for stage in STAGES)
+    out = tmp_path / "run"
+    results = json.loads((out / "results.json").read_text())
+    table = final_table(first.stdout)
+    print(table)
+    assert results["table"] == table and (out / "results.md").read_text().startswith(table)
+    for name in ("il", "rsft", "cso"):
+        rates = results["success_rate"][name]
+        assert set(rates) == {*TASKS, "overall"} and all(0 <= r["mean"] <= 1 for r in rates.values())
+    assert results["success_rate"]["il"]["drawer-close-v3"]["mean"] > 0
+    assert json.loads((out / "rsft" / "pretrained_model" / "config.json").read_text())["freeze_encoders"]
+    assert len((out / "spo" / "log.jsonl").read_text().splitlines()) == 1  # one SPO iteration
+
+    started = time.perf_counter()
+    second = pipeline(f"--config_path={tiny_config}")
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert all(f"[pipeline] {stage}: complete, skipped" in second.stdout for stage in STAGES)
+    assert ": running" not in second.stdout
+    assert final_table(second.stdout) == table
+    assert time.perf_counter() - started < 60
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--rsft.tasks=reach-v3"], "rsft.tasks: set tasks and output_dir at the top level only"),
+        (["--il.policy={prior_dimm: 8}"], "il.policy: unknown cso policy setting(s) prior_dimm"),
+        (["--il.n_autoencoder_steps=200"], "il.n_autoencoder_steps must be in [0, il.steps=200)"),
+        (["--spo.group_size=1"], "group_size must be >= 2"),
+        (["--tasks=reach-v9"], "unknown MetaWorld task 'reach-v9'"),
+    ],
+)
+def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path, args, message, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # the CLI hands its arguments to the parser via sys.argv
+    assert main(["pipeline", f"--config_path={tiny_config}", *args]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: {message}")
+    assert not (tmp_path / "run").exists()
