@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import random
 import time
 import uuid
@@ -60,6 +61,11 @@ def make_rig(
     driver_options.setdefault("feedback_timeout_s", 0.1)
     driver = PiperDriver(DriverConfig(interface="virtual", channel=channel, **driver_options))
     rig = Rig(channel, emulator, driver, monitor, [emulator_bus, monitor])
+    # A full garbage collection stops every thread of this (torch-sized) test process for up to a few
+    # hundred ms, the emulated arm included, which the watchdog would rightly call stale feedback. A
+    # real arm keeps talking through our GC pauses, and the reader drains what queued up meanwhile.
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
     try:
         if connect:
             driver.connect()
@@ -71,6 +77,8 @@ def make_rig(
         emulator.stop()
         for bus in rig.buses:
             bus.shutdown()
+        if gc_was_enabled:
+            gc.enable()
 
 
 def wait_until(condition, timeout: float = 2.0, period: float = 0.002) -> bool:

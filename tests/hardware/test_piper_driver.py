@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 
@@ -94,9 +95,16 @@ def test_unknown_interface_is_one_clear_error():
 # ---------------------------------------------------------------------------------- watchdog
 @pytest.fixture
 def watchdog_rig():
-    """The driver's default watchdog (3 feedback periods = 15 ms); light feedback keeps the GIL freer."""
-    with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=3 * PERIOD) as rig:
-        yield rig
+    """The driver's default watchdog (3 feedback periods = 15 ms). The emulated arm, the reader and the
+    test share one interpreter here, so a thread can wait a whole GIL switch interval (5 ms) to run:
+    lighter feedback and a 1 ms interval keep that from being measured as watchdog latency."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(0.001)
+    try:
+        with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=3 * PERIOD) as rig:
+            yield rig
+    finally:
+        sys.setswitchinterval(interval)
 
 
 def test_default_watchdog_is_three_feedback_periods():
