@@ -263,6 +263,7 @@ class Pipeline:
                 f"--output_dir={out}",
                 f"--dataset.root={dataset}",
                 f"--dataset.repo_id={self.cfg.demos.repo_id}",
+                "--dataset.video_backend=pyav",  # no videos in the demos; skips probing torchcodec
                 f"--steps={il.steps}",
                 f"--num_workers={il.num_workers}",
             ]
