@@ -43,9 +43,7 @@ def k3(ratios: list[float]) -> float:
 
 
 def run(new, old, mask, adv, granularity, clip=None):
-    loss, stats = clipped_surrogate_loss(
-        new, old, mask, torch.tensor(adv, dtype=torch.float64), granularity, clip
-    )
+    loss, stats = clipped_surrogate_loss(new, old, mask, torch.tensor(adv, dtype=torch.float64), granularity, clip)
     (grad,) = torch.autograd.grad(loss, new)
     return loss.item(), grad, stats
 
@@ -209,9 +207,7 @@ def test_padding_affects_neither_loss_nor_gradient(granularity):
 
 def test_no_valid_decision_gives_zero_loss():
     new = torch.zeros(2, 3, 8, requires_grad=True)
-    loss, stats = clipped_surrogate_loss(
-        new, new.detach() + 1, torch.zeros(2, 3, dtype=torch.bool), torch.ones(2)
-    )
+    loss, stats = clipped_surrogate_loss(new, new.detach() + 1, torch.zeros(2, 3, dtype=torch.bool), torch.ones(2))
     assert loss.item() == 0.0 and stats.clip_fraction == 0.0 and stats.approx_kl == 0.0
 
 

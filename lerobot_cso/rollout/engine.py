@@ -11,7 +11,7 @@ Inference is batched across all envs: episodes start on multiples of ``n_action_
 
     ctx = policy.encode_context(preprocessor(obs))          # (B, P, d)
     tokens, logp = policy.sample_skills(ctx, temperature, top_k, greedy, generator)
-    actions = postprocessor(policy.decode_skills(tokens)[:, :n_action_steps])
+    actions = postprocessor(policy.decode_skills(tokens, n_action_steps))
 
 Sampling draws from one ``torch.Generator`` seeded per call: a call is reproducible given the same
 initial states, K, sampling settings, seed and number of envs.
@@ -217,7 +217,7 @@ class RolloutEngine:
             greedy=sampling.greedy,
             generator=generator,
         )
-        chunk = self.policy.decode_skills(tokens)[:, : self.policy.config.n_action_steps]
+        chunk = self.policy.decode_skills(tokens, self.policy.config.n_action_steps)  # executed prefix only
         flat = self.postprocessor(chunk.reshape(-1, chunk.shape[-1]))
         chunks = flat.reshape(chunk.shape).float().cpu().numpy()
         return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks
