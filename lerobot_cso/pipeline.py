@@ -109,15 +109,19 @@ class PipelineConfig:
 
 
 def _cli_value(value: Any) -> str:
-    """A yaml value as a draccus command-line value (lists and booleans as JSON)."""
-    return json.dumps(value, separators=(",", ":")) if isinstance(value, (list, bool)) or value is None else str(value)
+    """A yaml value as a draccus command-line value (lists, mappings and booleans as JSON)."""
+    return (
+        json.dumps(value, separators=(",", ":"))
+        if isinstance(value, (list, dict, bool)) or value is None
+        else str(value)
+    )
 
 
-def _settings(section: Any) -> dict[str, Any]:
-    """A section's settings as plain JSON data, without the propagated fields."""
-    data = {f.name: getattr(section, f.name) for f in dataclasses.fields(section)}
-    if not isinstance(section, ILConfig):
-        data = {k: v for k, v in data.items() if k not in PROPAGATED}
+def _settings(section: Any, runtime: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A section's settings as plain JSON data, without the propagated fields and the ``runtime`` ones
+    (those that do not change the stage's result, so a rerun may change them, e.g. to resume with less memory)."""
+    skip = runtime if isinstance(section, ILConfig) else (*PROPAGATED, *runtime)
+    data = {f.name: getattr(section, f.name) for f in dataclasses.fields(section) if f.name not in skip}
     return json.loads(
         json.dumps(data, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
     )
@@ -248,7 +252,7 @@ class Pipeline:
         from lerobot_cso.demos import generate_demos
 
         cfg = self.demos_config()
-        spec = {"tasks": self.tasks, "demos": _settings(cfg)}
+        spec = {"tasks": self.tasks, "demos": _settings(cfg, runtime=("num_envs",))}
         self.stage("demos", spec, cfg.output_dir, cfg.output_dir / "meta" / "info.json", lambda: generate_demos(cfg))
         return cfg.output_dir
 
@@ -256,7 +260,14 @@ class Pipeline:
         il = self.cfg.il
         out = self.out / "il"
         policy = out / "checkpoints" / "last" / "pretrained_model"
-        spec = {"il": _settings(il), "after": {"demos": self.finished_at("demos")}}
+        spec = {
+            "il": _settings(il, runtime=("num_workers", "save_freq", "log_freq")),
+            "after": {"demos": self.finished_at("demos")},
+        }
+
+        def steps_done() -> int:
+            path = out / "checkpoints" / "last" / "training_state" / "training_step.json"
+            return json.loads(path.read_text())["step"] if path.is_file() else 0
 
         def train() -> dict[str, Any]:
             common = [
@@ -267,7 +278,9 @@ class Pipeline:
                 f"--steps={il.steps}",
                 f"--num_workers={il.num_workers}",
             ]
-            if (policy / "train_config.json").is_file():
+            if steps_done() >= il.steps:
+                args = None  # finished; only its record was missing
+            elif (policy / "train_config.json").is_file():
                 args = ["--resume=true", f"--config_path={policy / 'train_config.json'}", *common]
             else:
                 shutil.rmtree(out, ignore_errors=True)  # killed before its first checkpoint: start over
@@ -282,11 +295,11 @@ class Pipeline:
                     *(f"--policy.{k}={_cli_value(v)}" for k, v in settings.items()),
                     *il.extra_args,
                 ]
-            _lerobot_train(args, self.cfg.torch_threads)
-            step = json.loads((out / "checkpoints" / "last" / "training_state" / "training_step.json").read_text())
-            if step["step"] < il.steps:
-                raise RuntimeError(f"lerobot-train stopped at step {step['step']} of {il.steps}")
-            return {"steps": step["step"], "checkpoint": str(policy)}
+            if args is not None:
+                _lerobot_train(args, self.cfg.torch_threads)
+            if steps_done() < il.steps:
+                raise RuntimeError(f"lerobot-train stopped at step {steps_done()} of {il.steps}")
+            return {"steps": steps_done(), "checkpoint": str(policy)}
 
         self.stage("il", spec, out, policy / "config.json", train)
         return policy
