@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -49,7 +50,7 @@ def make_cfg(policy_path: Path, out: Path, **kw) -> spo.SPOConfig:
 
 
 def engine_factory(engines: list[ScriptedEngine], outcome=mixed):
-    def make(policy, pre, post, num_envs):
+    def make(policy, pre, post, num_envs, max_steps):
         engine = ScriptedEngine(outcome, policy=policy)
         engines.append(engine)
         return engine
@@ -116,8 +117,10 @@ def test_resume_continues_after_the_last_finished_iteration(rsft_policy, tmp_pat
     assert resumed[0] == first[0] and [h["iteration"] for h in resumed] == [1, 2]
     seeds_run = [s.seed for e in engines for call in e.calls for s in call]
     assert len(seeds_run) == len(set(seeds_run))  # the second run drew new initial states only
+    shutil.rmtree(tmp_path / "pretrained_model")  # as if killed between the last iteration and the final copy
     again = spo.run_spo(make_cfg(rsft_policy, tmp_path, iterations=2), make_engine=engine_factory(engines))
     assert again == resumed and len(engines) == 2  # complete: nothing rolled out
+    assert (tmp_path / "pretrained_model" / "model.safetensors").is_file()
 
 
 def test_bad_objective_is_a_clear_error(rsft_policy, tmp_path):

@@ -43,7 +43,7 @@ from lerobot_cso.checkpoints import (
     write_atomic,
 )
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import ACTION_DIM, FPS, STATE_DIM
+from lerobot_cso.envs.constants import ACTION_DIM, FPS, HORIZON, STATE_DIM
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
@@ -69,6 +69,7 @@ class RSFTConfig:
     states_per_round: int = 2  # new initial states per unfinished task per batched rollout call
     max_states_per_task: int = 2000
     num_envs: int = 16
+    max_steps: int = HORIZON  # episode cap of the rollouts (a failure runs to the cap)
     seed: int = 0
     # Fine-tuning (Eq. 6, App. E.2).
     epochs: int = 20
@@ -106,6 +107,8 @@ class RSFTConfig:
         ):
             if getattr(self, name) < (0 if name == "epochs" else 1):
                 raise UsageError(f"{name} must be >= {0 if name == 'epochs' else 1}, got {getattr(self, name)}")
+        if not 1 <= self.max_steps <= HORIZON:
+            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         if self.temperature <= 0 or (self.top_k is not None and self.top_k < 1):
             raise UsageError("temperature must be > 0 and top_k >= 1 (or null)")
         if self.push_to_hub and self.repo_id.startswith("local/"):
@@ -289,6 +292,7 @@ def cosine_lr(step: int, total: int, lr: float, min_lr: float) -> float:
 
 def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     """Eq. 6 on the buffer's decision frames, then freeze the encoders and save the checkpoint."""
+    torch.manual_seed(cfg.seed)  # dropout and initialisation noise: same config, same checkpoint
     policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
     policy.set_encoders_frozen(False)
     # Action chunks are only read by QueST's optional decoder loss (and cost LeRobot a query per frame).
@@ -343,7 +347,7 @@ def run_rsft(cfg: RSFTConfig) -> dict[str, Any]:
     restore_interrupted_replace(cfg.output_dir / "buffer")
     if not (cfg.output_dir / "buffer" / "meta" / "info.json").is_file():
         policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
-        with RolloutEngine(policy, pre, post, num_envs=cfg.num_envs) as engine:
+        with RolloutEngine(policy, pre, post, num_envs=cfg.num_envs, max_steps=cfg.max_steps) as engine:
             collect(cfg, tasks, engine, journal)
         write_buffer(cfg, tasks, journal, policy.config.n_tokens)
     report = collection_report(journal, tasks)

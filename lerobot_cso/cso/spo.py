@@ -49,6 +49,7 @@ from lerobot_cso.cso.objectives import (
     reject_uniform_groups,
 )
 from lerobot_cso.envs import seeds
+from lerobot_cso.envs.constants import HORIZON
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
@@ -93,6 +94,7 @@ class SPOConfig:
     # Give up on an iteration's collection after drawing this many times B groups (all rejected).
     max_draw_factor: int = 4
     num_envs: int = 16
+    max_steps: int = HORIZON  # episode cap of the rollouts (a failure runs to the cap)
     seed: int = 0
     wandb: WandBConfig = field(default_factory=WandBConfig)
 
@@ -117,6 +119,8 @@ class SPOConfig:
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.group_size < 2:
             raise UsageError(f"group_size must be >= 2 for group-relative advantages, got {self.group_size}")
+        if not 1 <= self.max_steps <= HORIZON:
+            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         low, high = self.clip()
         if not 0 < low <= 1 <= high:
             raise UsageError(f"the clip range must satisfy 0 < clip_low <= 1 <= clip_high, got [{low}, {high}]")
@@ -216,7 +220,7 @@ def update(
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(policy.prior.parameters(), cfg.grad_clip_norm)
             optimizer.step()
-            rows.append({"loss": float(loss), "grad_norm": float(grad_norm), **asdict(stats)})
+            rows.append({"loss": loss.item(), "grad_norm": float(grad_norm), **asdict(stats)})
     return {key: float(np.mean([r[key] for r in rows])) for key in ("loss", "grad_norm", "clip_fraction", "approx_kl")}
 
 
@@ -244,7 +248,7 @@ def format_row(row: dict[str, float]) -> str:
 def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine) -> list[dict[str, float]]:
     """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``.
 
-    ``make_engine(policy, preprocessor, postprocessor, num_envs=...)`` builds the rollout engine.
+    ``make_engine(policy, preprocessor, postprocessor, num_envs=..., max_steps=...)`` builds the rollout engine.
     """
     tasks = cfg.validate()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
@@ -255,6 +259,9 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutE
     progress = json.loads(progress_file.read_text()) if resume else {"iteration": 0, "cursor": 0, "history": []}
     if progress["iteration"] >= cfg.iterations:
         print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
+        if not (cfg.output_dir / "pretrained_model" / "config.json").is_file():  # killed before the final copy
+            shutil.copytree(state / "pretrained_model", cfg.output_dir / "pretrained_model.tmp", dirs_exist_ok=True)
+            replace_dir(cfg.output_dir / "pretrained_model.tmp", cfg.output_dir / "pretrained_model")
         return progress["history"]
     source = state / "pretrained_model" if resume else cfg.policy.pretrained_path
     policy, pre, post = load_policy(source, cfg.policy if not resume else None)
@@ -277,7 +284,7 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutE
         )
     history = progress["history"]
     print(" | ".join(LOG_COLUMNS))
-    with make_engine(policy, pre, post, num_envs=cfg.num_envs) as engine:
+    with make_engine(policy, pre, post, num_envs=cfg.num_envs, max_steps=cfg.max_steps) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
             round_seed = cfg.seed * 1_000_003 + iteration * 10_007
