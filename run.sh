@@ -9,7 +9,8 @@ VENV=.venv
 
 find_python() {
     local c
-    for c in python3.13 python3.12 python3 python; do
+    # LeRobot 0.6.1 is tested on 3.12: prefer it, then any newer Python.
+    for c in python3.12 python3 python3.13 python; do
         if command -v "$c" >/dev/null 2>&1 && "$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
             command -v "$c"; return 0
         fi
@@ -17,7 +18,7 @@ find_python() {
     if command -v pyenv >/dev/null 2>&1; then
         local root v
         root=$(pyenv root)
-        for v in $(ls -1 "$root/versions" 2>/dev/null | sort -rV); do
+        for v in $(ls -1 "$root/versions" 2>/dev/null | grep '^3\.12\.'; ls -1 "$root/versions" 2>/dev/null | sort -rV); do
             c="$root/versions/$v/bin/python"
             if [ -x "$c" ] && "$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
                 echo "$c"; return 0
