@@ -6,9 +6,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
-from conftest import TINY_POLICY_KWARGS
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
+from tiny_data import TINY_POLICY_KWARGS
 
 from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.policy import CSOConfig, CSOPolicy

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_pre_post_processors
+from tiny_data import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.modeling_cso import masked_l1, skill_nll

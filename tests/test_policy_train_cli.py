@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import TINY_POLICY_ARGS, make_synthetic_dataset
 from safetensors.torch import load_file
+from tiny_data import TINY_POLICY_ARGS, make_synthetic_dataset
 
 BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
