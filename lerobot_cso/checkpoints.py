@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,20 @@ def policy_config_from_cli(field: str = "policy") -> PreTrainedConfig | None:
     config = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides)
     config.pretrained_path = Path(path)
     return config
+
+
+@dataclass
+class PolicyPathConfig:
+    """Base of the subcommand configs that take ``--policy.path=DIR`` (LeRobot's ``EvalPipelineConfig`` way)."""
+
+    policy: PreTrainedConfig | None = None
+
+    def __post_init__(self) -> None:
+        self.policy = policy_config_from_cli() or self.policy
+
+    @classmethod
+    def __get_path_fields__(cls) -> list[str]:
+        return ["policy"]
 
 
 def load_policy(path: str | Path, config: PreTrainedConfig | None = None) -> tuple[CSOPolicy, Any, Any]:

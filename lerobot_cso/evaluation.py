@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 from lerobot.configs import parser
-from lerobot.configs.policies import PreTrainedConfig
 
+from lerobot_cso.checkpoints import PolicyPathConfig
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.constants import HORIZON
 from lerobot_cso.envs.tasks import all_tasks, resolve_tasks, task_description
@@ -29,10 +29,9 @@ from lerobot_cso.errors import UsageError
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(PolicyPathConfig):
     """Settings of ``lerobot-cso eval`` (``--policy.path=... --tasks=MT10 --seeds=0,1,2``)."""
 
-    policy: PreTrainedConfig | None = None
     # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test.
     tasks: str = "ML45-train"
     episodes_per_task: int = 50
@@ -47,20 +46,9 @@ class EvalConfig:
     output_dir: Path | None = None
 
     def __post_init__(self) -> None:
-        policy_path = parser.get_path_arg("policy")
-        if policy_path:
-            if not (Path(policy_path) / "config.json").is_file():
-                raise UsageError(f"--policy.path={policy_path} is not a saved policy (no config.json there)")
-            overrides = parser.get_yaml_overrides("policy") + (parser.get_cli_overrides("policy") or [])
-            self.policy = PreTrainedConfig.from_pretrained(policy_path, cli_overrides=overrides)
-            self.policy.pretrained_path = Path(policy_path)
+        super().__post_init__()
         if self.output_dir is None:
             self.output_dir = Path("outputs/eval/cso") / f"{dt.datetime.now():%Y-%m-%d_%H-%M-%S}"
-
-    @classmethod
-    def __get_path_fields__(cls) -> list[str]:
-        """Lets ``--policy.path=dir`` load the policy config, as in LeRobot's ``EvalPipelineConfig``."""
-        return ["policy"]
 
     def eval_seeds(self) -> list[int]:
         try:

@@ -30,13 +30,12 @@ import numpy as np
 import torch
 from accelerate import Accelerator
 from lerobot.configs import parser
-from lerobot.configs.policies import PreTrainedConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
 from lerobot_cso.checkpoints import (
+    PolicyPathConfig,
     load_policy,
-    policy_config_from_cli,
     replace_dir,
     restore_interrupted_replace,
     save_checkpoint,
@@ -55,10 +54,9 @@ TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed"
 
 
 @dataclass
-class RSFTConfig:
+class RSFTConfig(PolicyPathConfig):
     """Settings of ``lerobot-cso rsft --policy.path=<IL checkpoint> --tasks=MT10 --output_dir=...``."""
 
-    policy: PreTrainedConfig | None = None
     tasks: str = "MT10"
     output_dir: Path = Path("outputs/rsft")
     # Collection (Algorithm 1, App. E.2 / G).
@@ -81,13 +79,6 @@ class RSFTConfig:
     # Publishing the success buffer with LeRobot's push_to_hub.
     push_to_hub: bool = False
     repo_id: str = "local/cso_rsft_buffer"
-
-    def __post_init__(self) -> None:
-        self.policy = policy_config_from_cli() or self.policy
-
-    @classmethod
-    def __get_path_fields__(cls) -> list[str]:
-        return ["policy"]
 
     def validate(self) -> list[str]:
         if self.policy is None or self.policy.pretrained_path is None:

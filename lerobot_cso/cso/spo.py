@@ -31,11 +31,10 @@ import numpy as np
 import torch
 from lerobot.configs import parser
 from lerobot.configs.default import WandBConfig
-from lerobot.configs.policies import PreTrainedConfig
 
 from lerobot_cso.checkpoints import (
+    PolicyPathConfig,
     load_policy,
-    policy_config_from_cli,
     replace_dir,
     restore_interrupted_replace,
     save_checkpoint,
@@ -69,10 +68,9 @@ LOG_COLUMNS = (
 
 
 @dataclass
-class SPOConfig:
+class SPOConfig(PolicyPathConfig):
     """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
 
-    policy: PreTrainedConfig | None = None
     tasks: str = "MT10"
     output_dir: Path = Path("outputs/spo")
     # token (GRPO) | skill (SPO, Eq. 9) | trajectory (GSPO) | ript
@@ -97,13 +95,6 @@ class SPOConfig:
     max_steps: int = HORIZON  # episode cap of the rollouts (a failure runs to the cap)
     seed: int = 0
     wandb: WandBConfig = field(default_factory=WandBConfig)
-
-    def __post_init__(self) -> None:
-        self.policy = policy_config_from_cli() or self.policy
-
-    @classmethod
-    def __get_path_fields__(cls) -> list[str]:
-        return ["policy"]
 
     def validate(self) -> list[str]:
         if self.policy is None or self.policy.pretrained_path is None:

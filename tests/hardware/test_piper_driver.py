@@ -111,12 +111,15 @@ def test_default_watchdog_is_three_feedback_periods():
     assert DriverConfig().feedback_timeout_s == pytest.approx(3 * PERIOD)
 
 
-def test_watchdog_stays_quiet_while_feedback_flows(watchdog_rig):
-    rig = watchdog_rig
-    for _ in range(50):
-        rig.driver.command(POSE, 0.02)
-        time.sleep(0.02)
-    assert rig.driver.link.stale_error is None
+def test_watchdog_stays_quiet_while_feedback_flows():
+    # 100 ms rather than the 15 ms default: on 2 shared cores the emulator thread itself can be descheduled for
+    # over 15 ms, which is a real feedback gap. What this checks is that flowing feedback never trips it
+    # (clock or timestamp mix-ups would); the 15 ms latency is measured by the test below.
+    with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=0.1) as rig:
+        for _ in range(50):
+            rig.driver.command(POSE, 0.02)
+            time.sleep(0.02)
+        assert rig.driver.link.stale_error is None
 
 
 @pytest.mark.parametrize("fault", ["drop one joint frame", "bus silence"])
