@@ -24,6 +24,8 @@ ID_MASTER_SLAVE = 0x470
 ID_MOTOR_ENABLE = 0x471
 ID_LIMIT_QUERY = 0x472
 ID_MOTOR_LIMITS = 0x473
+ID_JOINT_CONFIG = 0x475
+ID_INSTRUCTION_RESPONSE = 0x476
 ID_MOTOR_ACCEL_LIMIT = 0x47C
 ID_FIRMWARE = 0x4AF
 ID_ARM_STATUS = 0x2A1
@@ -127,6 +129,8 @@ class Linkage(IntEnum):
 MOTOR_ALL_JOINTS = 0x07  # what piper_sdk's EnableArm sends
 MOTOR_ALL = 0xFF
 GRIPPER_SET_ZERO = 0xAE
+FLAG_VALID = 0xAE  # 0x475 set-zero / accel-valid / clear-error flags
+ACCEL_NO_CHANGE = 0x7FFF  # 0x475 max acceleration "no change" (firmware >= V1.5-2)
 LIMIT_QUERY_ANGLE_SPEED = 0x01
 LIMIT_QUERY_ACCELERATION = 0x02
 GRIPPER_EFFORT_MAX_NM = 5.0
@@ -265,6 +269,20 @@ class FirmwareQuery:
     """0x4AF ``01 00 …``: ask for the firmware version string."""
 
 
+@dataclass(frozen=True, slots=True)
+class JointConfig:
+    """0x475: per joint (1..6, 7 = all) set zero, set the max acceleration, clear the joint's errors.
+
+    ``max_accel_raw`` is in 0.01 rad/s² and applies only with ``accel_valid`` (0x7FFF: no change).
+    """
+
+    joint: int
+    set_zero: bool = False
+    accel_valid: bool = False
+    max_accel_raw: int = ACCEL_NO_CHANGE
+    clear_error: bool = False
+
+
 # ------------------------------------------------------------------------- arm -> host messages
 @dataclass(frozen=True, slots=True)
 class ArmStatus:
@@ -378,6 +396,14 @@ class FirmwareChunk:
     data: bytes
 
 
+@dataclass(frozen=True, slots=True)
+class InstructionResponse:
+    """0x476: the arm acknowledges a setting command (``command`` = low byte of its ID, e.g. 0x75)."""
+
+    command: int
+    zero_set_ok: bool = False
+
+
 CommandMessage = (
     EmergencyStop
     | ModeControl
@@ -387,6 +413,7 @@ CommandMessage = (
     | MotorEnable
     | LimitQuery
     | FirmwareQuery
+    | JointConfig
 )
 FeedbackMessage = (
     ArmStatus
@@ -397,6 +424,7 @@ FeedbackMessage = (
     | MotorLimits
     | MotorAccelLimit
     | FirmwareChunk
+    | InstructionResponse
 )
 
 
@@ -467,6 +495,17 @@ def encode_firmware_query(_: FirmwareQuery) -> Frame:
     return Frame(ID_FIRMWARE, FIRMWARE_QUERY_PAYLOAD)
 
 
+def _flag(value: bool) -> int:
+    return FLAG_VALID if value else 0
+
+
+def encode_joint_config(msg: JointConfig) -> Frame:
+    if not 1 <= msg.joint <= NUM_JOINTS + 1:
+        raise CodecError(f"0x475: joint must be 1..7 (7 = all), got {msg.joint}")
+    raw = [msg.joint, _flag(msg.set_zero), _flag(msg.accel_valid), msg.max_accel_raw, _flag(msg.clear_error)]
+    return Frame(ID_JOINT_CONFIG, _pack("BBBHB", raw, "0x475"))
+
+
 def encode_arm_status(msg: ArmStatus) -> Frame:
     raw = [
         msg.ctrl_mode,
@@ -535,6 +574,10 @@ def encode_firmware_chunk(msg: FirmwareChunk) -> Frame:
     return Frame(ID_FIRMWARE, bytes(msg.data).ljust(DLC, b"\x00"))
 
 
+def encode_instruction_response(msg: InstructionResponse) -> Frame:
+    return Frame(ID_INSTRUCTION_RESPONSE, _pack("BB", [msg.command, int(msg.zero_set_ok)], "0x476"))
+
+
 _ENCODERS: dict[type, Callable] = {
     EmergencyStop: encode_emergency_stop,
     ModeControl: encode_mode_control,
@@ -544,6 +587,7 @@ _ENCODERS: dict[type, Callable] = {
     MotorEnable: encode_motor_enable,
     LimitQuery: encode_limit_query,
     FirmwareQuery: encode_firmware_query,
+    JointConfig: encode_joint_config,
     ArmStatus: encode_arm_status,
     JointFeedback: encode_joint_feedback,
     GripperFeedback: encode_gripper_feedback,
@@ -552,6 +596,7 @@ _ENCODERS: dict[type, Callable] = {
     MotorLimits: encode_motor_limits,
     MotorAccelLimit: encode_motor_accel_limit,
     FirmwareChunk: encode_firmware_chunk,
+    InstructionResponse: encode_instruction_response,
 }
 
 
@@ -630,6 +675,14 @@ def _decode_firmware_query(_: int, data: bytes) -> FirmwareQuery:
     return FirmwareQuery()
 
 
+def _decode_joint_config(_: int, data: bytes) -> JointConfig:
+    joint, zero, accel_valid, accel, clear = _unpack("BBBHB", data)
+    for name, value in (("set-zero", zero), ("accel-valid", accel_valid), ("clear-error", clear)):
+        if value not in (0, FLAG_VALID):
+            raise CodecError(f"0x475: the {name} flag must be 0x00 or 0xAE, got 0x{value:02X}")
+    return JointConfig(joint, zero == FLAG_VALID, accel_valid == FLAG_VALID, accel, clear == FLAG_VALID)
+
+
 def _decode_arm_status(_: int, data: bytes) -> ArmStatus:
     return ArmStatus(*_unpack("8B", data))
 
@@ -670,6 +723,11 @@ def _decode_firmware_chunk(_: int, data: bytes) -> FirmwareChunk:
     return FirmwareChunk(bytes(data))
 
 
+def _decode_instruction_response(_: int, data: bytes) -> InstructionResponse:
+    command, ok = _unpack("BB", data)
+    return InstructionResponse(command, ok == 0x01)
+
+
 _Decoder = Callable[[int, bytes], object]
 
 _COMMAND_DECODERS: dict[int, _Decoder] = {
@@ -681,6 +739,7 @@ _COMMAND_DECODERS: dict[int, _Decoder] = {
     ID_MOTOR_ENABLE: _decode_motor_enable,
     ID_LIMIT_QUERY: _decode_limit_query,
     ID_FIRMWARE: _decode_firmware_query,
+    ID_JOINT_CONFIG: _decode_joint_config,
 }
 
 _FEEDBACK_DECODERS: dict[int, _Decoder] = {
@@ -692,6 +751,7 @@ _FEEDBACK_DECODERS: dict[int, _Decoder] = {
     ID_MOTOR_LIMITS: _decode_motor_limits,
     ID_MOTOR_ACCEL_LIMIT: _decode_motor_accel_limit,
     ID_FIRMWARE: _decode_firmware_chunk,
+    ID_INSTRUCTION_RESPONSE: _decode_instruction_response,
 }
 
 COMMAND_IDS = frozenset(_COMMAND_DECODERS)
@@ -715,6 +775,16 @@ def decode_command(arbitration_id: int, data: bytes) -> CommandMessage | None:
 def decode_feedback(arbitration_id: int, data: bytes) -> FeedbackMessage | None:
     """Decode an arm -> host frame; ``None`` for an ID this codec does not know."""
     return _decode(_FEEDBACK_DECODERS, arbitration_id, data, "feedback")
+
+
+def firmware_release(version: str | None) -> tuple[int, ...] | None:
+    """``"S-V1.8-2"`` as ``(1, 8, 2)``; None if it is not of that form."""
+    if version is None or not version.startswith("S-V"):
+        return None
+    try:
+        return tuple(int(part) for part in version[3:].replace("-", ".").split("."))
+    except ValueError:
+        return None
 
 
 def parse_firmware_version(text: bytes) -> str | None:

@@ -1,252 +1,51 @@
-"""Simulated PiPER firmware speaking the real protocol on any python-can bus.
+"""Runs the simulated PiPER firmware (``piper_can.firmware``) on a python-can bus.
 
-Follower role: 200 Hz feedback (0x2A1..0x2A8, 0x251..0x256) and 40 Hz driver info (0x261..0x266); an
-enable state machine with latency and no acknowledgement; joints that move toward their targets at
-``max_speed × speed %`` (position mode) or with fast first-order tracking (high-follow 0xAD); flash
-limits (clamp or reject, with the firmware's status and error bits); the gripper; e-stop and reset as
-the firmware does them; firmware-version and limit replies. Leader role (0x470 0xFA): emits
-0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host commands.
-
-Two ways to run it: ``step(dt)`` (deterministic: handle queued frames, advance ``dt``, emit exactly one
-cycle) for unit tests, or ``start()`` for a real-time thread. Faults can be injected at any time.
+Two ways: ``step(dt)`` handles every queued frame, advances the model ``dt`` and sends one cycle
+(deterministic); ``start()`` does the same in real time on a daemon thread. While that thread runs,
+change the model inside ``with emulator.locked() as firmware:``.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import random
 import threading
 import time
-from collections import Counter, deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Literal
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import can
 
-from .codec import (
-    DLC,
-    ENABLED_BIT,
-    FEEDBACK_IDS,
-    GRIPPER_EFFORT_MAX_NM,
-    ID_END_POSE,
-    ID_FIRMWARE,
-    ID_LOW_SPEED,
-    MIT_MODE_HIGH_FOLLOW,
-    MIT_MODE_POSITION_VELOCITY,
-    MOTOR_ALL,
-    MOTOR_ALL_JOINTS,
-    NUM_JOINTS,
-    ArmStatus,
-    ArmStatusCode,
-    CodecError,
-    CtrlMode,
-    EmergencyStop,
-    EStopAction,
-    FirmwareChunk,
-    FirmwareQuery,
-    Frame,
-    GripperCommand,
-    GripperFeedback,
-    GripperStatusCode,
-    HighSpeedInfo,
-    JointCommand,
-    LimitQuery,
-    Linkage,
-    LowSpeedInfo,
-    MasterSlaveConfig,
-    ModeControl,
-    MotorAccelLimit,
-    MotorEnable,
-    MotorLimits,
-    MoveMode,
-    decode_command,
-    encode,
-    encode_joint_positions,
-    encode_joint_targets,
-)
-from .safety import SDK_SOFT_LIMITS, JointLimits, clamp
+from .codec import Frame
+from .firmware import EmulatorConfig, PiperFirmware
 
 log = logging.getLogger(__name__)
 
-LeaderTrajectory = Callable[[float], tuple[Sequence[float], float]]
-
-# 0x26x byte 5 bits that fault injection can set, by name.
-DRIVER_FAULTS = {
-    "low_voltage": 0,
-    "over_temp": 1,
-    "over_current": 2,
-    "driver_over_temp": 3,
-    "collision": 4,
-    "driver_error": 5,
-    "stall": 7,
-}
-_VALID_CTRL_MODES = {0x00, 0x01, 0x03, 0x04, 0x07}
-_VALID_MIT_MODES = {MIT_MODE_POSITION_VELOCITY, MIT_MODE_HIGH_FOLLOW, 0xFF}
-_REACHED_TOLERANCE_RAD = 1e-4
-_LIMIT_TOLERANCE_RAD = 1e-6
 _MAX_REAL_TIME_STEP_S = 0.1
-_ARM_IDS = FEEDBACK_IDS | set(ID_END_POSE)  # arm -> host frames (0x4AF only when it is not a query)
-
-
-def scripted_leader(t: float) -> tuple[tuple[float, ...], float]:
-    """Default leader trajectory: slow sines (< 0.5 rad/s) around a pose well inside the limits."""
-    centre = (0.0, 0.8, -0.8, 0.0, 0.3, 0.0)
-    amplitude = (0.4, 0.3, 0.3, 0.4, 0.3, 0.5)
-    joints = tuple(
-        c + a * math.sin(2 * math.pi * 0.15 * t + j) for j, (c, a) in enumerate(zip(centre, amplitude, strict=True))
-    )
-    return joints, 0.035 + 0.025 * math.sin(2 * math.pi * 0.2 * t)
-
-
-@dataclass
-class EmulatorConfig:
-    """Behaviour of the simulated firmware."""
-
-    role: Literal["follower", "leader"] = "follower"
-    profile: Literal["full", "light"] = "full"  # light: 0x2A1, 0x2A5..0x2A8 and 0x261..0x266 only
-    period_s: float = 0.005
-    low_speed_period_s: float = 0.025
-    rate_scale: float = 1.0  # real-time mode only: wall period = period_s / rate_scale
-    jitter_s: float = 0.0  # real-time mode only: extra random delay per cycle
-    seed: int = 0
-    rest_pose_rad: tuple[float, ...] = (0.0,) * NUM_JOINTS
-    initial_pose_rad: tuple[float, ...] | None = None
-    limits: JointLimits = SDK_SOFT_LIMITS
-    limit_policy: Literal["clamp", "reject"] = "clamp"
-    max_speed_rad_s: float = 3.0
-    follow_time_constant_s: float = 0.02
-    gripper_speed_m_s: float = 0.1
-    enable_latency_s: float = 0.02
-    double_enable_after_reset: bool = False
-    apply_joint_targets: Literal["pair", "full"] = "pair"
-    estop_sag_rad_s: float = 0.05
-    disabled_behaviour: Literal["hold", "drop"] = "hold"
-    drop_rad_s: float = 1.0
-    start_enabled: bool = False
-    strict: bool = False
-    firmware_text: str = "H-V1.2-1 S-V1.8-2 P-V1.0.0 PiPER emulator"
-    firmware_frames: int = 11
-    leader_trajectory: LeaderTrajectory | None = scripted_leader
-    log_size: int = 20_000
-
-
-@dataclass(frozen=True, slots=True)
-class LoggedFrame:
-    """One frame in the emulator's log: simulated time, direction (``rx`` host->arm, ``tx``), frame."""
-
-    time_s: float
-    direction: Literal["rx", "tx"]
-    arbitration_id: int
-    data: bytes
-
-
-@dataclass
-class _Joint:
-    position: float
-    target: float
-    velocity: float = 0.0
-    enabled: bool = False
-    fault_bits: int = 0
-
-
-@dataclass
-class _PendingEnable:
-    due_s: float
-    joints: tuple[int, ...]
-    enable: bool
-
-
-@dataclass
-class _Gripper:
-    opening: float = 0.0
-    target: float = 0.0
-    effort: float = 0.0
-    enabled: bool = False
-    zero_offset: float = 0.0
-    fault_bits: int = 0
 
 
 class PiperEmulator:
-    """A simulated PiPER on ``bus``. Inspect ``joints_rad``, ``enabled``, ``gripper_m``, ``ctrl_mode``,
-    ``ignored`` (reason -> count) and ``frame_log`` in tests."""
+    """A ``PiperFirmware`` on ``bus``: received frames go to ``handle``, its frames go on the bus."""
 
     def __init__(self, bus: can.BusABC, config: EmulatorConfig | None = None) -> None:
         self.bus = bus
-        self.config = config or EmulatorConfig()
-        self.frame_log: deque[LoggedFrame] = deque(maxlen=self.config.log_size)
-        self.ignored: Counter[str] = Counter()
-        self.drop_ids: set[int] = set()
-        self.silent = False
-        self.leader_pose: tuple[tuple[float, ...], float] | None = None
-        self._frozen: list[Frame] | None = None
-        self._rng = random.Random(self.config.seed)
+        self.firmware = PiperFirmware(config)
+        self._rng = random.Random(self.firmware.config.seed)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._lock = threading.RLock()
-        self._pending_role: str | None = None
-        self.power_cycle()
 
-    # ------------------------------------------------------------------------- ground truth
-    @property
-    def joints_rad(self) -> tuple[float, ...]:
-        return tuple(j.position for j in self._joints)
-
-    @property
-    def targets_rad(self) -> tuple[float, ...]:
-        return tuple(j.target for j in self._joints)
-
-    @property
-    def enabled(self) -> tuple[bool, ...]:
-        return tuple(j.enabled for j in self._joints)
-
-    @property
-    def gripper_m(self) -> float:
-        return self._gripper.opening - self._gripper.zero_offset
-
-    @property
-    def gripper_enabled(self) -> bool:
-        return self._gripper.enabled
-
-    @property
-    def estopped(self) -> bool:
-        return self._estop
-
-    def power_cycle(self) -> None:
-        """Power off and on: everything back to the initial state; a pending role change applies."""
+    @contextmanager
+    def locked(self) -> Iterator[PiperFirmware]:
+        """The model, with the real-time loop held off while the block runs."""
         with self._lock:
-            cfg = self.config
-            pose = cfg.initial_pose_rad or cfg.rest_pose_rad
-            if len(pose) != NUM_JOINTS:
-                raise ValueError(f"the emulator pose needs {NUM_JOINTS} angles, got {len(pose)}")
-            self.role = self._pending_role or cfg.role
-            self._pending_role = None
-            self._joints = [_Joint(p, p, enabled=cfg.start_enabled) for p in pose]
-            self._gripper = _Gripper(enabled=cfg.start_enabled)
-            self._pending: list[_PendingEnable] = []
-            self._latched: dict[int, tuple[float, float]] = {}  # JointCtrl pairs by first joint
-            self._rejected: set[int] = set()
-            self.time_s = 0.0
-            self._next_low_speed_s = cfg.period_s  # the first cycle carries 0x261..0x266
-            self.ctrl_mode = CtrlMode.CAN if cfg.start_enabled else CtrlMode.STANDBY
-            self.move_mode = MoveMode.J
-            self.speed_percent = 100 if cfg.start_enabled else 0
-            self.mit_mode = MIT_MODE_HIGH_FOLLOW if cfg.start_enabled else MIT_MODE_POSITION_VELOCITY
-            self.arm_status = ArmStatusCode.NORMAL
-            self.comm_error_mask = 0
-            self._estop = False
-            self._enables_since_reset = 0
-            self._needs_reset_to_leave_high_follow = False
-            if self.role == "leader":
-                self.ctrl_mode = CtrlMode.LINKAGE_TEACH
+            yield self.firmware
 
-    # ---------------------------------------------------------------------------- running
     def step(self, dt: float | None = None) -> None:
-        """Handle every queued host frame, advance ``dt`` (default one period) and emit one cycle."""
+        """Handle every queued host frame, advance ``dt`` (default one period) and send one cycle."""
         while (msg := self.bus.recv(timeout=0)) is not None:
-            self.handle(msg)
-        self._advance(self.config.period_s if dt is None else dt)
+            self._receive(msg)
+        self._advance(self.firmware.config.period_s if dt is None else dt)
 
     def start(self) -> None:
         """Run in real time on a daemon thread until ``stop``."""
@@ -263,9 +62,9 @@ class PiperEmulator:
         self._thread = None
 
     def _run(self) -> None:
-        """One cycle per period; the physics advances by the wall time that really passed (so a busy
+        """One cycle per period; the model advances by the wall time that really passed (so a busy
         machine delays frames, as a loaded bus would, but never slows the simulated arm down)."""
-        cfg = self.config
+        cfg = self.firmware.config
         wall_period = cfg.period_s / cfg.rate_scale
         last = time.monotonic()
         next_tick = last + wall_period
@@ -274,7 +73,7 @@ class PiperEmulator:
             while remaining > 0:
                 msg = self.bus.recv(timeout=remaining)
                 if msg is not None:
-                    self.handle(msg)
+                    self._receive(msg)
                 remaining = next_tick - time.monotonic()
             now = time.monotonic()
             self._advance(min((now - last) * cfg.rate_scale, _MAX_REAL_TIME_STEP_S))
@@ -283,354 +82,22 @@ class PiperEmulator:
             if now - next_tick > 0.1:  # fell far behind (machine busy): resynchronise
                 next_tick = now
 
-    # --------------------------------------------------------------------------- faults
-    def inject_fault(self, kind: str, joint: int) -> None:
-        """Set a fault: ``comm_error`` (0x2A1 byte 7 + status 0x05) or a driver bit of ``DRIVER_FAULTS``
-        (``collision`` also sets status 0x07). ``joint`` 7 is the gripper (driver bits only)."""
-        with self._lock:
-            if kind == "comm_error":
-                if not 1 <= joint <= NUM_JOINTS:
-                    raise ValueError(f"comm_error needs a joint 1..6, got {joint}")
-                self.comm_error_mask |= 1 << (joint - 1)
-                self.arm_status = ArmStatusCode.JOINT_COMM_ERROR
-                return
-            if kind not in DRIVER_FAULTS:
-                raise ValueError(f"unknown fault {kind!r}; known: comm_error, {', '.join(DRIVER_FAULTS)}")
-            bit = 1 << DRIVER_FAULTS[kind]
-            if joint == NUM_JOINTS + 1:
-                self._gripper.fault_bits |= bit
-            elif 1 <= joint <= NUM_JOINTS:
-                self._joints[joint - 1].fault_bits |= bit
-                if kind == "collision":
-                    self.arm_status = ArmStatusCode.COLLISION
-            else:
-                raise ValueError(f"joint must be 1..7 (7 = gripper), got {joint}")
-
-    def clear_faults(self) -> None:
-        with self._lock:
-            for j in self._joints:
-                j.fault_bits = 0
-            self._gripper.fault_bits = 0
-            self.comm_error_mask = 0
-            if self.arm_status != ArmStatusCode.EMERGENCY_STOP:
-                self.arm_status = ArmStatusCode.NORMAL
-
-    def freeze_feedback(self, frozen: bool = True) -> None:
-        """Keep emitting, but the same frames as now (values stop changing)."""
-        with self._lock:
-            self._frozen = self._feedback_frames(low_speed=True) if frozen else None
-
-    def set_position(self, joint: int, position_rad: float) -> None:
-        """Force a joint (e.g. pushed by hand past a limit); its target follows."""
-        with self._lock:
-            self._joints[joint - 1].position = position_rad
-            self._joints[joint - 1].target = position_rad
-
-    # ----------------------------------------------------------------------- host frames
-    def handle(self, msg: can.Message) -> None:
-        """Apply one received frame as the firmware would."""
-        with self._lock:
-            self._handle(msg)
-
-    def _ignore(self, reason: str, msg: can.Message) -> None:
-        self.ignored[reason] += 1
-        if self.config.strict:
-            log.warning("PiPER emulator ignored 0x%X %s: %s", msg.arbitration_id, bytes(msg.data).hex(" "), reason)
-
-    def _handle(self, msg: can.Message) -> None:
+    def _receive(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame:
             return
-        frame_id = msg.arbitration_id
-        data = bytes(msg.data)
-        if frame_id in _ARM_IDS and not (frame_id == ID_FIRMWARE and data[:1] == b"\x01"):
-            return  # another arm's feedback, or our own echoed back by the bus
-        self.frame_log.append(LoggedFrame(self.time_s, "rx", frame_id, data))
-        if self.silent:
-            return
-        if msg.is_extended_id or len(data) != DLC:
-            self._ignore("wrong DLC or extended ID", msg)
-            return
-        try:
-            command = decode_command(frame_id, data)
-        except CodecError:
-            self._ignore("invalid value", msg)
-            return
-        if command is None:
-            self._ignore("unknown ID", msg)
-            return
-        if self.role == "leader" and not isinstance(command, MasterSlaveConfig | FirmwareQuery):
-            self._ignore("leader ignores commands", msg)
-            return
-        match command:
-            case EmergencyStop():
-                self._on_estop(command)
-            case ModeControl():
-                self._on_mode(command, msg)
-            case JointCommand():
-                self._on_joints(command, msg)
-            case GripperCommand():
-                self._on_gripper(command, msg)
-            case MotorEnable():
-                self._on_enable(command, msg)
-            case LimitQuery():
-                self._on_limit_query(command)
-            case FirmwareQuery():
-                self._reply_firmware()
-            case MasterSlaveConfig():
-                self._on_master_slave(command)
+        with self._lock:
+            replies = self.firmware.handle(Frame(msg.arbitration_id, bytes(msg.data)), msg.is_extended_id)
+        self._send(replies)
 
-    def _on_estop(self, cmd: EmergencyStop) -> None:
-        if cmd.action == EStopAction.STOP:
-            self._estop = True
-            self.arm_status = ArmStatusCode.EMERGENCY_STOP
-        elif cmd.action == EStopAction.RESUME:  # reset: clear errors, drop power, standby
-            self._estop = False
-            self.clear_faults()
-            self.arm_status = ArmStatusCode.NORMAL
-            for j in self._joints:
-                j.enabled = False
-                j.target = j.position
-            self._gripper.enabled = False
-            self._pending.clear()
-            self._latched.clear()
-            self.ctrl_mode = CtrlMode.STANDBY
-            self._enables_since_reset = 0
-            self._needs_reset_to_leave_high_follow = False
-
-    def _on_mode(self, cmd: ModeControl, msg: can.Message) -> None:
-        if (
-            cmd.ctrl_mode not in _VALID_CTRL_MODES
-            or cmd.move_mode > 0x06
-            or cmd.speed_percent > 100
-            or cmd.mit_mode not in _VALID_MIT_MODES
-        ):
-            self._ignore("invalid value", msg)
-            return
-        if self.config.strict and self._needs_reset_to_leave_high_follow and cmd.mit_mode != MIT_MODE_HIGH_FOLLOW:
-            self._ignore("leaving high-follow without reset", msg)
-            return
-        self.ctrl_mode = CtrlMode(cmd.ctrl_mode)
-        self.move_mode = cmd.move_mode
-        self.speed_percent = cmd.speed_percent
-        self.mit_mode = cmd.mit_mode
-        if cmd.mit_mode == MIT_MODE_HIGH_FOLLOW:
-            self._needs_reset_to_leave_high_follow = True
-
-    def _motion_refusal(self, joints: Sequence[int]) -> str | None:
-        if self._estop:
-            return "e-stop"
-        if self.ctrl_mode != CtrlMode.CAN or not (
-            self.move_mode == MoveMode.J or self.mit_mode == MIT_MODE_HIGH_FOLLOW
-        ):
-            return "wrong mode"
-        if not all(self._joints[j - 1].enabled for j in joints):
-            return "disabled"
-        return None
-
-    def _on_joints(self, cmd: JointCommand, msg: can.Message) -> None:
-        first = cmd.first_joint
-        reason = self._motion_refusal((first, first + 1))
-        if reason is not None:
-            self._ignore(reason, msg)
-            return
-        self._latched[first] = cmd.positions_rad
-        if self.config.apply_joint_targets == "full" and len(self._latched) < 3:
-            return
-        targets: dict[int, float] = {}
-        for pair_first, pair in self._latched.items():
-            targets[pair_first], targets[pair_first + 1] = pair
-        self._latched.clear()
-        bounds = {j: self.config.limits.joints_rad[j - 1] for j in targets}
-        outside = {j for j, t in targets.items() if not bounds[j][0] <= t <= bounds[j][1]}
-        if outside and self.config.limit_policy == "reject":
-            self._rejected |= outside
-            self.arm_status = ArmStatusCode.TARGET_EXCEEDS_LIMIT
-            self._ignore("out of range", msg)
-            return
-        self._rejected -= targets.keys()
-        if not self._rejected and self.arm_status == ArmStatusCode.TARGET_EXCEEDS_LIMIT:
-            self.arm_status = ArmStatusCode.NORMAL  # a valid target for every rejected joint clears it
-        for j, t in targets.items():
-            self._joints[j - 1].target = clamp(t, *bounds[j])
-
-    def _on_gripper(self, cmd: GripperCommand, msg: can.Message) -> None:
-        if self.config.strict and cmd.effort_nm > GRIPPER_EFFORT_MAX_NM:
-            self._ignore("out of range", msg)
-            return
-        g = self._gripper
-        if cmd.status_code in (GripperStatusCode.DISABLE_CLEAR_ERROR, GripperStatusCode.ENABLE_CLEAR_ERROR):
-            g.fault_bits = 0
-        g.enabled = cmd.status_code in (GripperStatusCode.ENABLE, GripperStatusCode.ENABLE_CLEAR_ERROR)
-        if cmd.set_zero:
-            g.zero_offset = g.opening
-        if not g.enabled or self._estop:
-            g.target = g.opening
-            return
-        g.effort = min(cmd.effort_nm, GRIPPER_EFFORT_MAX_NM)
-        g.target = clamp(cmd.opening_m + g.zero_offset, *self.config.limits.gripper_m)
-
-    def _on_enable(self, cmd: MotorEnable, msg: can.Message) -> None:
-        if cmd.motor in (MOTOR_ALL_JOINTS, MOTOR_ALL):
-            joints = tuple(range(1, NUM_JOINTS + 1))
-        elif 1 <= cmd.motor <= NUM_JOINTS:
-            joints = (cmd.motor,)
-        else:
-            self._ignore("invalid value", msg)
-            return
-        if cmd.enable:
-            self._enables_since_reset += 1
-            if self.config.double_enable_after_reset and self._enables_since_reset < 2:
-                return
-        self._pending.append(_PendingEnable(self.time_s + self.config.enable_latency_s, joints, cmd.enable))
-
-    def _on_limit_query(self, cmd: LimitQuery) -> None:
-        motors = range(1, NUM_JOINTS + 1) if cmd.motor in (0, MOTOR_ALL) else (cmd.motor,)
-        for m in motors:
-            if not 1 <= m <= NUM_JOINTS:
-                continue
-            if cmd.kind == 0x01:
-                lower, upper = self.config.limits.joints_rad[m - 1]
-                max_speed_raw = round(self.config.max_speed_rad_s * 100)
-                self._send(encode(MotorLimits(m, upper, lower, max_speed_raw)))
-            elif cmd.kind == 0x02:
-                self._send(encode(MotorAccelLimit(m, 5.0)))
-
-    def _reply_firmware(self) -> None:
-        n = self.config.firmware_frames
-        text = self.config.firmware_text.encode("ascii")[: n * DLC].ljust(n * DLC, b"\x00")
-        for i in range(n):
-            self._send(encode(FirmwareChunk(text[i * DLC : (i + 1) * DLC])))
-
-    def _on_master_slave(self, cmd: MasterSlaveConfig) -> None:
-        if cmd.linkage == Linkage.LEADER:
-            self.role = "leader"
-            self.ctrl_mode = CtrlMode.LINKAGE_TEACH
-        elif cmd.linkage == Linkage.FOLLOWER and self.role == "leader":
-            self._pending_role = "follower"  # the firmware needs a power cycle to leave the leader role
-
-    # ---------------------------------------------------------------------------- physics
     def _advance(self, dt: float) -> None:
         with self._lock:
-            self.time_s += dt
-            self._apply_due_enables()
-            self._move_joints(dt)
-            self._move_gripper(dt)
-            frames = self._cycle_frames()
+            frames = self.firmware.tick(dt)
+        self._send(frames)
+
+    def _send(self, frames: list[Frame]) -> None:
         for frame in frames:
-            self._send(frame)
-
-    def _apply_due_enables(self) -> None:
-        due = [p for p in self._pending if p.due_s <= self.time_s + 1e-12]
-        self._pending = [p for p in self._pending if p.due_s > self.time_s + 1e-12]
-        for p in due:
-            for j in p.joints:
-                joint = self._joints[j - 1]
-                if joint.enabled != p.enable:  # a repeated enable keeps the current target
-                    joint.enabled = p.enable
-                    joint.target = joint.position
-
-    def _move_joints(self, dt: float) -> None:
-        cfg = self.config
-        high_follow = self.mit_mode == MIT_MODE_HIGH_FOLLOW
-        speed = cfg.max_speed_rad_s * (1.0 if high_follow else self.speed_percent / 100)
-        for j, joint in enumerate(self._joints):
-            before = joint.position
-            if self._estop:
-                joint.position = _toward(joint.position, cfg.rest_pose_rad[j], cfg.estop_sag_rad_s * dt)
-                joint.target = joint.position
-            elif not joint.enabled:
-                if cfg.disabled_behaviour == "drop":
-                    joint.position = _toward(joint.position, cfg.rest_pose_rad[j], cfg.drop_rad_s * dt)
-                joint.target = joint.position
-            elif high_follow:
-                alpha = 1.0 - math.exp(-dt / cfg.follow_time_constant_s)
-                delta = clamp((joint.target - joint.position) * alpha, -speed * dt, speed * dt)
-                joint.position += delta
-                if abs(joint.target - joint.position) < _REACHED_TOLERANCE_RAD:
-                    joint.position = joint.target
-            else:
-                joint.position = _toward(joint.position, joint.target, speed * dt)
-            joint.velocity = (joint.position - before) / dt if dt > 0 else 0.0
-
-    def _move_gripper(self, dt: float) -> None:
-        g = self._gripper
-        if g.enabled and not self._estop:
-            g.opening = _toward(g.opening, g.target, self.config.gripper_speed_m_s * dt)
-
-    # ---------------------------------------------------------------------------- emission
-    def _cycle_frames(self) -> list[Frame]:
-        if self.silent:
-            return []
-        if self.role == "leader":
-            return self._leader_frames()
-        low_speed = self.time_s >= self._next_low_speed_s - 1e-9
-        if low_speed:  # on an ideal 40 Hz grid, so late cycles do not lower the average rate
-            self._next_low_speed_s += self.config.low_speed_period_s
-            if self._next_low_speed_s <= self.time_s:  # far behind: restart the grid, no burst
-                self._next_low_speed_s = self.time_s + self.config.low_speed_period_s
-        frames = self._frozen if self._frozen is not None else self._feedback_frames(low_speed)
-        if self._frozen is not None and not low_speed:
-            frames = [f for f in frames if f.arbitration_id not in ID_LOW_SPEED]
-        return [f for f in frames if f.arbitration_id not in self.drop_ids]
-
-    def _feedback_frames(self, low_speed: bool) -> list[Frame]:
-        full = self.config.profile == "full"
-        frames = [encode(self._status())]
-        if full:
-            frames += [Frame(i, bytes(DLC)) for i in ID_END_POSE]
-        frames += encode_joint_positions(self.joints_rad)
-        g = self._gripper
-        gripper_status = g.fault_bits | (1 << ENABLED_BIT if g.enabled else 0)
-        frames.append(encode(GripperFeedback(self.gripper_m, g.effort if g.enabled else 0.0, gripper_status)))
-        if full:
-            for j, joint in enumerate(self._joints, start=1):
-                current = 0.2 + 0.5 * abs(joint.velocity) if joint.enabled else 0.0
-                frames.append(encode(HighSpeedInfo(j, joint.velocity, current, joint.position)))
-        if low_speed:
-            for j, joint in enumerate(self._joints, start=1):
-                status = joint.fault_bits | (1 << ENABLED_BIT if joint.enabled else 0)
-                bus_current = (0.3 if joint.enabled else 0.05) if j <= 3 else 0.0
-                frames.append(encode(LowSpeedInfo(j, 24.0, 30, 28, status, bus_current)))
-        return frames
-
-    def _status(self) -> ArmStatus:
-        reached = all(abs(j.target - j.position) < _REACHED_TOLERANCE_RAD for j in self._joints)
-        angle_limit_mask = 0
-        for j, (joint, (lower, upper)) in enumerate(zip(self._joints, self.config.limits.joints_rad, strict=True)):
-            if not lower - _LIMIT_TOLERANCE_RAD <= joint.position <= upper + _LIMIT_TOLERANCE_RAD:
-                angle_limit_mask |= 1 << j
-        return ArmStatus(
-            ctrl_mode=self.ctrl_mode,
-            arm_status=self.arm_status,
-            mode_feed=self.move_mode,
-            motion_status=0 if reached else 1,
-            angle_limit_mask=angle_limit_mask,
-            comm_error_mask=self.comm_error_mask,
-        )
-
-    def _leader_frames(self) -> list[Frame]:
-        if self.leader_pose is not None:
-            joints, gripper = self.leader_pose
-        elif self.config.leader_trajectory is not None:
-            joints, gripper = self.config.leader_trajectory(self.time_s)
-        else:
-            joints, gripper = self.joints_rad, self.gripper_m
-        frames = [
-            encode(ModeControl(CtrlMode.CAN, MoveMode.J, 100, MIT_MODE_HIGH_FOLLOW)),
-            *encode_joint_targets(joints),
-            encode(GripperCommand(gripper, 1.0, GripperStatusCode.ENABLE)),
-        ]
-        return [f for f in frames if f.arbitration_id not in self.drop_ids]
-
-    def _send(self, frame: Frame) -> None:
-        self.frame_log.append(LoggedFrame(self.time_s, "tx", frame.arbitration_id, frame.data))
-        msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
-        try:
-            self.bus.send(msg)
-        except can.CanError as exc:  # a full socket buffer must not kill the firmware loop
-            log.debug("emulator send failed: %s", exc)
-
-
-def _toward(value: float, target: float, max_delta: float) -> float:
-    """Move ``value`` toward ``target`` by at most ``max_delta``."""
-    return value + clamp(target - value, -max_delta, max_delta)
+            msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+            try:
+                self.bus.send(msg)
+            except can.CanError as exc:  # a full socket buffer must not kill the firmware loop
+                log.debug("emulator send failed: %s", exc)

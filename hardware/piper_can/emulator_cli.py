@@ -13,8 +13,9 @@ import sys
 import threading
 from typing import NoReturn
 
-from .emulator import EmulatorConfig, PiperEmulator
+from .emulator import PiperEmulator
 from .errors import PiperError
+from .firmware import EmulatorConfig
 from .link import open_bus
 
 PROG = "piper-emulator"

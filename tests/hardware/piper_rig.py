@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 
 import can
 from piper_can.driver import DriverConfig, PiperDriver
-from piper_can.emulator import EmulatorConfig, PiperEmulator
+from piper_can.emulator import PiperEmulator
+from piper_can.firmware import EmulatorConfig, PiperFirmware
 
 
 def unique_virtual_channel() -> str:
@@ -35,6 +36,11 @@ class Rig:
     driver: PiperDriver
     monitor: can.BusABC
     buses: list[can.BusABC] = field(default_factory=list)
+
+    @property
+    def arm(self) -> PiperFirmware:
+        """The emulated firmware (its ground truth); change it inside ``emulator.locked()`` while it runs."""
+        return self.emulator.firmware
 
     def drain(self, timeout: float = 0.0) -> list[can.Message]:
         """Every frame the monitor has seen since the last drain."""

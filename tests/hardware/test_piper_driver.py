@@ -10,7 +10,6 @@ import time
 import pytest
 from piper_can import codec
 from piper_can.driver import DisconnectPolicy, DriverConfig, PiperDriver
-from piper_can.emulator import EmulatorConfig
 from piper_can.errors import (
     EmergencyStopError,
     EnableTimeoutError,
@@ -18,6 +17,7 @@ from piper_can.errors import (
     FirmwareFaultError,
     PiperConnectionError,
 )
+from piper_can.firmware import EmulatorConfig
 from piper_can.safety import SDK_SOFT_LIMITS
 from piper_rig import make_rig, unique_virtual_channel, wait_until
 
@@ -43,8 +43,8 @@ def motion_frames(frames):
 
 # ---------------------------------------------------------------------------- connect / enable
 def test_enable_handshake_converges_and_rates_are_measured(rig):
-    assert rig.emulator.enabled == (True,) * 6 and rig.emulator.gripper_enabled
-    assert rig.emulator.ctrl_mode == codec.CtrlMode.CAN and rig.emulator.speed_percent == 50
+    assert rig.arm.enabled == (True,) * 6 and rig.arm.gripper_enabled
+    assert rig.arm.ctrl_mode == codec.CtrlMode.CAN and rig.arm.speed_percent == 50
     enables = [m for m in rig.drain() if m.arbitration_id == 0x471]
     assert len(enables) >= 2 and all(bytes(m.data) == bytes.fromhex("0702000000000000") for m in enables)
     time.sleep(1.2)
@@ -59,7 +59,7 @@ def test_enable_handshake_converges_and_rates_are_measured(rig):
 def test_enable_survives_latency_and_a_firmware_that_wants_two_requests():
     config = EmulatorConfig(enable_latency_s=0.05, double_enable_after_reset=True)
     with make_rig(config) as rig:
-        assert rig.emulator.enabled == (True,) * 6
+        assert rig.arm.enabled == (True,) * 6
         walk_to(rig.driver, POSE)
 
 
@@ -127,9 +127,9 @@ def test_watchdog_fires_within_three_periods_and_stops_commanding(watchdog_rig, 
     rig = watchdog_rig
     rig.driver.command(POSE[:1] + (0.0,) * 5)
     if fault == "bus silence":
-        rig.emulator.silent = True
+        rig.arm.silent = True
     else:
-        rig.emulator.drop_ids = {0x2A6}
+        rig.arm.drop_ids = {0x2A6}
     assert wait_until(lambda: rig.driver.link.stale_error is not None, timeout=1.0)
     last_joint_frame = min(s.timestamp for s in rig.driver.state().joints)
     latency = rig.driver.link.stale_at - last_joint_frame
@@ -211,16 +211,16 @@ def test_frames_of_concurrent_commands_never_interleave(rig):
 def test_estop_refuses_motion_and_resume_re_enables(rig):
     walk_to(rig.driver, POSE)
     rig.driver.emergency_stop()
-    assert wait_until(lambda: rig.emulator.estopped)
+    assert wait_until(lambda: rig.arm.estopped)
     with pytest.raises(EmergencyStopError, match="emergency stop engaged"):
         rig.driver.command(POSE)
     assert wait_until(lambda: rig.driver.state().status.value.arm_status == codec.ArmStatusCode.EMERGENCY_STOP)
     with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
         rig.driver.checked_state()
     time.sleep(0.2)
-    assert rig.emulator.joints_rad[1] < POSE[1]  # damped, sinking slowly
+    assert rig.arm.joints_rad[1] < POSE[1]  # damped, sinking slowly
     rig.driver.resume()
-    assert rig.emulator.enabled == (True,) * 6 and rig.emulator.ctrl_mode == codec.CtrlMode.CAN
+    assert rig.arm.enabled == (True,) * 6 and rig.arm.ctrl_mode == codec.CtrlMode.CAN
     assert not rig.driver.estopped and rig.driver.checked_state().faults() == ()
     walk_to(rig.driver, POSE)
 
@@ -237,7 +237,8 @@ def test_estop_refuses_motion_and_resume_re_enables(rig):
     ],
 )
 def test_firmware_error_bits_become_exceptions_naming_joint_and_fault(rig, inject, part, fault):
-    inject(rig.emulator)
+    with rig.emulator.locked() as arm:
+        inject(arm)
     assert wait_until(lambda: rig.driver.state().faults() != (), timeout=1.0)
     time.sleep(0.05)  # let every frame kind report it
     with pytest.raises(FirmwareFaultError) as err:
@@ -255,8 +256,8 @@ def test_disconnect_hold_keeps_the_arm_enabled_where_it_is(rig):
     walk_to(rig.driver, POSE)
     rig.driver.disconnect()
     time.sleep(0.1)
-    assert rig.emulator.enabled == (True,) * 6
-    assert rig.emulator.joints_rad == pytest.approx(POSE, abs=1e-3)
+    assert rig.arm.enabled == (True,) * 6
+    assert rig.arm.joints_rad == pytest.approx(POSE, abs=1e-3)
 
 
 def test_disconnect_rest_walks_home_then_disables():
@@ -265,9 +266,9 @@ def test_disconnect_rest_walks_home_then_disables():
         walk_to(rig.driver, POSE, 0.03)
         rig.drain()
         rig.driver.disconnect()
-        assert rig.emulator.enabled == (False,) * 6 and not rig.emulator.gripper_enabled
-        assert rig.emulator.joints_rad == pytest.approx((0.0,) * 6, abs=0.011)
-        assert rig.emulator.gripper_m == pytest.approx(0.0, abs=0.0021)
+        assert rig.arm.enabled == (False,) * 6 and not rig.arm.gripper_enabled
+        assert rig.arm.joints_rad == pytest.approx((0.0,) * 6, abs=0.011)
+        assert rig.arm.gripper_m == pytest.approx(0.0, abs=0.0021)
         sent = [codec.decode_command(0x155, m.data) for m in rig.drain() if m.arbitration_id == 0x155]
         steps = [abs(b.positions_rad[1] - a.positions_rad[1]) for a, b in zip(sent, sent[1:], strict=False)]
         assert len(sent) > 10 and max(steps) < 0.05  # walked in small steps, did not jump
@@ -276,8 +277,9 @@ def test_disconnect_rest_walks_home_then_disables():
 def test_disconnect_rest_holds_when_the_pose_cannot_be_reached():
     with make_rig(disconnect_policy=DisconnectPolicy.REST, rest_timeout_s=0.3) as rig:
         walk_to(rig.driver, POSE)
-        rig.emulator.inject_fault("collision", 2)
+        with rig.emulator.locked() as arm:
+            arm.inject_fault("collision", 2)
         assert wait_until(lambda: rig.driver.state().faults() != ())
         rig.driver.disconnect()
-        assert rig.emulator.enabled == (True,) * 6  # not dropped
+        assert rig.arm.enabled == (True,) * 6  # not dropped
         assert not rig.driver.is_connected

@@ -16,8 +16,9 @@ from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig, cli_errors
 from piper_can import codec
-from piper_can.emulator import EmulatorConfig, PiperEmulator
+from piper_can.emulator import PiperEmulator
 from piper_can.errors import FeedbackStaleError, PiperConnectionError
+from piper_can.firmware import EmulatorConfig
 from piper_rig import unique_virtual_channel, wait_until
 
 KEYS = ["joint_1.pos", "joint_2.pos", "joint_3.pos", "joint_4.pos", "joint_5.pos", "joint_6.pos", "gripper.pos"]
@@ -30,6 +31,7 @@ class Arm:
     def __init__(self, channel: str, config: EmulatorConfig | None = None):
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.emulator = PiperEmulator(self.bus, config)
+        self.firmware = self.emulator.firmware
         self.emulator.start()
 
     def close(self) -> None:
@@ -108,7 +110,7 @@ def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
     try:
         with pytest.raises(DeviceAlreadyConnectedError):
             robot.connect()
-        assert arm.emulator.enabled == (True,) * 6
+        assert arm.firmware.enabled == (True,) * 6
         obs = robot.get_observation()
         assert list(obs) == KEYS and obs["joint_2.pos"] == 0.0
         far = dict(zip(KEYS, (2.0, 2.0, -2.0, 0.0, 0.0, 0.0, 0.07), strict=True))
@@ -117,12 +119,12 @@ def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
         assert [sent[k] for k in KEYS] == pytest.approx([0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 0.07])
         near = dict(zip(KEYS, (0.1, 0.1, -0.1, 0.0, 0.0, 0.0, 0.01), strict=True))
         assert robot.send_action(near) == pytest.approx(near)
-        assert wait_until(lambda: arm.emulator.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
+        assert wait_until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
         with pytest.raises(ValueError, match="missing gripper.pos"):
             robot.send_action({k: 0.0 for k in KEYS[:6]})
     finally:
         robot.disconnect()
-    assert not robot.is_connected and arm.emulator.enabled == (True,) * 6  # "hold" by default
+    assert not robot.is_connected and arm.firmware.enabled == (True,) * 6  # "hold" by default
 
 
 def test_per_key_max_relative_target(arms, tmp_path):
@@ -141,14 +143,14 @@ def test_per_key_max_relative_target(arms, tmp_path):
 def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel, EmulatorConfig(role="leader"))
-    arm.emulator.leader_pose = LEADER_POSE
+    arm.firmware.leader_pose = LEADER_POSE
     leader = PiperLeader(leader_config(channel, tmp_path))
     leader.connect()
     try:
         action = leader.get_action()
         expected = [*LEADER_POSE[0], LEADER_POSE[1]]
         assert list(action) == KEYS and [action[k] for k in KEYS] == pytest.approx(expected, abs=1e-5)
-        arm.emulator.silent = True  # unplugged
+        arm.firmware.silent = True  # unplugged
         assert wait_until(lambda: leader.link.stale_error is not None, timeout=1.0)
         with pytest.raises(FeedbackStaleError, match="no leader joint frames"):
             leader.get_action()
@@ -162,7 +164,8 @@ def test_leader_moved_by_hand_is_read_from_its_feedback(arms, tmp_path):
     leader = PiperLeader(leader_config(channel, tmp_path, source="feedback"))
     leader.connect()
     try:
-        arm.emulator.set_position(1, 0.5)
+        with arm.emulator.locked() as firmware:
+            firmware.set_position(1, 0.5)
         assert wait_until(lambda: leader.get_action()["joint_1.pos"] == pytest.approx(0.5, abs=1e-5))
     finally:
         leader.disconnect()
@@ -172,7 +175,7 @@ def test_hardware_linked_leader_drives_the_follower_and_the_pc_only_listens(arms
     channel = unique_virtual_channel()
     follower_arm = arms(channel, EmulatorConfig(start_enabled=True))
     leader_arm = arms(channel, EmulatorConfig(role="leader"))
-    leader_arm.emulator.leader_pose = LEADER_POSE
+    leader_arm.firmware.leader_pose = LEADER_POSE
     monitor = can.Bus(interface="virtual", channel=channel)
     robot = PiperFollower(follower_config(channel, tmp_path, hardware_linked_leader=True))
     teleop = PiperLeader(leader_config(channel, tmp_path))
@@ -196,7 +199,7 @@ def test_hardware_linked_leader_drives_the_follower_and_the_pc_only_listens(arms
     assert host_ids == set()  # no enable, e-stop, role or query frame from the PC
     targets = [codec.decode_command(0x155, m.data).positions_rad for m in frames if m.arbitration_id == 0x155]
     assert targets and all(t == pytest.approx(LEADER_POSE[0][:2], abs=1e-5) for t in targets)
-    assert follower_arm.emulator.joints_rad == pytest.approx(LEADER_POSE[0], abs=1e-4)
+    assert follower_arm.firmware.joints_rad == pytest.approx(LEADER_POSE[0], abs=1e-4)
 
 
 def test_connect_failure_releases_the_bus(tmp_path):
@@ -228,7 +231,7 @@ def test_radians_are_the_unit(arms, tmp_path):
     robot.connect()
     try:
         assert robot.get_observation()["joint_1.pos"] == pytest.approx(math.radians(30), abs=1e-5)
-        assert arm.emulator.enabled == (True,) * 6
+        assert arm.firmware.enabled == (True,) * 6
     finally:
         robot.disconnect()
 

@@ -46,7 +46,7 @@ def test_no_command_beyond_limits_or_step_ever_reaches_the_bus(stepped_rig, goal
     for _ in range(moves):  # let the arm travel toward the previous targets
         rig.emulator.step()
     rig.emulator.step()
-    present, present_gripper = as_fed_back(rig.emulator.joints_rad, rig.emulator.gripper_m)
+    present, present_gripper = as_fed_back(rig.arm.joints_rad, rig.arm.gripper_m)
     assert wait_until(lambda: rig.driver.state().joint_positions_rad == present, timeout=2.0)
     assert wait_until(lambda: rig.driver.state().gripper.value.opening_m == present_gripper, timeout=2.0)
     rig.drain()

@@ -50,15 +50,15 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     while not sdk.EnablePiper():
         assert time.monotonic() < deadline, "EnablePiper never saw the enable bits"
         time.sleep(0.01)
-    assert arm.enabled == (True,) * 6 and sdk.GetArmEnableStatus() == [True] * 6
+    assert arm.firmware.enabled == (True,) * 6 and sdk.GetArmEnableStatus() == [True] * 6
 
     # Its commands move the emulated arm.
     sdk.MotionCtrl_2(0x01, 0x01, 100, 0x00)
     sdk.JointCtrl(10000, 20000, -30000, 0, 5000, -1000)
     sdk.GripperCtrl(50000, 1000, 0x01, 0)
     expected_rad = tuple(math.radians(d) for d in (10, 20, -30, 0, 5, -1))
-    assert wait_until(lambda: arm.joints_rad == pytest.approx(expected_rad, abs=1e-6), timeout=3.0)
-    assert wait_until(lambda: arm.gripper_m == pytest.approx(0.05, abs=1e-6), timeout=3.0)
+    assert wait_until(lambda: arm.firmware.joints_rad == pytest.approx(expected_rad, abs=1e-6), timeout=3.0)
+    assert wait_until(lambda: arm.firmware.gripper_m == pytest.approx(0.05, abs=1e-6), timeout=3.0)
 
     # It reads our joint angles, gripper, enable and status bits, in its own units.
     time.sleep(0.05)
@@ -84,5 +84,5 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
 
     # And it can switch our arm off.
     sdk.DisableArm(7)
-    assert wait_until(lambda: arm.enabled == (False,) * 6)
+    assert wait_until(lambda: arm.firmware.enabled == (False,) * 6)
     assert wait_until(lambda: sdk.GetArmEnableStatus() == [False] * 6)
