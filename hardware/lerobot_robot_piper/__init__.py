@@ -1,14 +1,12 @@
 """LeRobot plugin for the AgileX PiPER: robot ``piper_follower`` and teleoperator ``piper_leader``.
 
-LeRobot imports this package by its distribution name; importing it registers both config types.
+LeRobot imports this package by its distribution name; importing it registers both config types and
+changes nothing else in the process.
 """
 
-from . import cli_errors
 from .config_piper_follower import PiperFollowerConfig
 from .config_piper_leader import PiperLeaderConfig
 from .piper_follower import PiperFollower
 from .piper_leader import PiperLeader
-
-cli_errors.install()
 
 __all__ = ["PiperFollower", "PiperFollowerConfig", "PiperLeader", "PiperLeaderConfig"]

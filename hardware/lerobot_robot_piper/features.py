@@ -7,6 +7,9 @@ from collections.abc import Mapping, Sequence
 JOINT_KEYS = tuple(f"joint_{j}.pos" for j in range(1, 7))
 GRIPPER_KEY = "gripper.pos"
 MOTOR_KEYS = (*JOINT_KEYS, GRIPPER_KEY)
+# Optional observations (``use_velocity_and_torque``), named as LeRobot's openarm names them.
+VELOCITY_KEYS = tuple(f"joint_{j}.vel" for j in range(1, 7))
+TORQUE_KEYS = tuple(f"joint_{j}.torque" for j in range(1, 7))
 
 
 def motor_features() -> dict[str, type]:

@@ -9,16 +9,18 @@ from lerobot.cameras import make_cameras_from_configs
 from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
 from piper_can.driver import PiperDriver
+from piper_can.errors import ArmNotReadyError
 
 from .config_piper_follower import PiperFollowerConfig
-from .features import from_action, motor_features, to_action
+from .features import TORQUE_KEYS, VELOCITY_KEYS, from_action, motor_features, to_action
 
 log = logging.getLogger(__name__)
 
 
 class PiperFollower(Robot):
     """Observations and actions are ``joint_1.pos … joint_6.pos`` (rad) and ``gripper.pos`` (m), plus
-    one ``(h, w, 3)`` image per camera. Targets are clamped to the soft limits and to
+    one ``(h, w, 3)`` image per camera, and with ``use_velocity_and_torque`` also ``joint_N.vel``
+    (rad/s) and ``joint_N.torque`` (N·m). Targets are clamped to the limits and to
     ``max_relative_target`` before they reach the bus; ``send_action`` returns what was sent."""
 
     config_class = PiperFollowerConfig
@@ -33,7 +35,8 @@ class PiperFollower(Robot):
     @cached_property
     def observation_features(self) -> dict[str, type | tuple]:
         cameras = {name: (cfg.height, cfg.width, 3) for name, cfg in self.config.cameras.items()}
-        return {**motor_features(), **cameras}
+        extra = dict.fromkeys((*VELOCITY_KEYS, *TORQUE_KEYS), float) if self.config.use_velocity_and_torque else {}
+        return {**motor_features(), **extra, **cameras}
 
     @cached_property
     def action_features(self) -> dict[str, type]:
@@ -57,11 +60,11 @@ class PiperFollower(Robot):
     def connect(self, calibrate: bool = True) -> None:
         self.driver.connect(listen_only=self.config.hardware_linked_leader)
         try:
-            self.driver.checked_state()
             if self.config.hardware_linked_leader:
+                self.driver.checked_state()
                 log.info("%s: hardware-linked leader on %s; observing only", self, self.driver.link.where)
             else:
-                self.driver.enable()
+                self.driver.enable()  # recovers faults as ``recovery`` says, or raises
             for cam in self.cameras.values():
                 cam.connect()
         except BaseException:
@@ -73,8 +76,15 @@ class PiperFollower(Robot):
     @check_if_not_connected
     def get_observation(self) -> dict:
         state = self.driver.checked_state()
-        assert state.joint_positions_rad is not None and state.gripper is not None
-        obs: dict = to_action(state.joint_positions_rad, state.gripper.value.opening_m)
+        joints, gripper = state.joint_positions_rad, state.gripper
+        if joints is None or gripper is None:  # not after connect(), which waited for both
+            raise ArmNotReadyError(f"{self}: no joint or gripper feedback yet")
+        obs: dict = to_action(joints, gripper.value.opening_m)
+        if self.config.use_velocity_and_torque:
+            velocities, torques = state.joint_velocities_rad_s, state.joint_torques_nm
+            if velocities is None or torques is None:  # not after connect(), which waited for them
+                raise ArmNotReadyError(f"{self}: no 0x251..0x256 motor feedback yet")
+            obs |= dict(zip(VELOCITY_KEYS, velocities, strict=True)) | dict(zip(TORQUE_KEYS, torques, strict=True))
         for name, cam in self.cameras.items():
             obs[name] = cam.read_latest()
         return obs
@@ -86,8 +96,7 @@ class PiperFollower(Robot):
             # The leader drives this arm through the hardware link; sending would fight it.
             return to_action(joints, gripper)
         sent = self.driver.command(joints, gripper)
-        assert sent.gripper_m is not None
-        return to_action(sent.joints_rad, sent.gripper_m)
+        return to_action(sent.joints_rad, gripper if sent.gripper_m is None else sent.gripper_m)
 
     def disconnect(self) -> None:
         """Best effort and never decorated: the disconnect policy runs even if a camera died."""

@@ -8,6 +8,7 @@ from functools import cached_property
 from lerobot.teleoperators.teleoperator import Teleoperator
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
 from piper_can.codec import ID_GRIPPER_COMMAND, ID_GRIPPER_FEEDBACK, ID_JOINT_COMMAND, ID_JOINT_FEEDBACK
+from piper_can.errors import FeedbackStaleError
 from piper_can.link import PiperLink
 
 from .config_piper_leader import PiperLeaderConfig
@@ -33,9 +34,8 @@ class PiperLeader(Teleoperator):
             config.channel,
             config.bitrate,
             {} if config.port is None else {"port": config.port},
-            watch_ids=self._joint_ids,
-            stale_timeout_s=config.timeout_s,
-            watch_name="leader joint frames" if control else "leader joint feedback",
+            watch=dict.fromkeys(self._joint_ids, config.timeout_s),
+            watch_name="leader joint frame" if control else "leader joint feedback",
         )
 
     @cached_property
@@ -67,13 +67,14 @@ class PiperLeader(Teleoperator):
 
     @check_if_not_connected
     def get_action(self) -> dict[str, float]:
-        self.link.raise_if_stale()
+        self.link.raise_if_unhealthy()
         state = self.link.state()
         if self.config.source == "control":
             joints, gripper = state.leader_joint_targets_rad, state.leader_gripper
         else:
             joints, gripper = state.joint_positions_rad, state.gripper
-        assert joints is not None and gripper is not None  # connect() waited for every frame
+        if joints is None or gripper is None:  # not after connect(), which waited for every frame
+            raise FeedbackStaleError(f"no leader frames heard on {self.link.where} yet")
         return to_action(joints, gripper.value.opening_m)
 
     def send_feedback(self, feedback: dict) -> None:

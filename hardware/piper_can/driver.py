@@ -1,5 +1,7 @@
-"""Safe driver for one PiPER follower arm: enable handshake, clamped joint/gripper commands,
-stale-feedback watchdog, e-stop / resume, firmware faults as exceptions, disconnect policy.
+"""Safe driver for one PiPER follower arm: enable handshake, clamped joint/gripper commands that are
+refused unless feedback shows every motor enabled in the mode we set, stale-feedback watchdog, e-stop
+that no motion frame can overtake, resume / clear-error / reset recovery, firmware limits, faults as
+exceptions, disconnect policy.
 """
 
 from __future__ import annotations
@@ -9,14 +11,16 @@ import math
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import StrEnum
 
 from .codec import (
     ID_ARM_STATUS,
     ID_GRIPPER_FEEDBACK,
+    ID_HIGH_SPEED,
     ID_JOINT_FEEDBACK,
     ID_LOW_SPEED,
+    LIMIT_QUERY_ANGLE_SPEED,
     MIT_MODE_HIGH_FOLLOW,
     MIT_MODE_POSITION_VELOCITY,
     MOTOR_ALL_JOINTS,
@@ -29,25 +33,44 @@ from .codec import (
     Frame,
     GripperCommand,
     GripperStatusCode,
+    JointConfig,
+    LimitQuery,
     ModeControl,
     MotorEnable,
     MoveMode,
     encode,
     encode_joint_targets,
+    firmware_release,
 )
-from .errors import EmergencyStopError, EnableTimeoutError, FirmwareFaultError, PiperConnectionError
+from .errors import (
+    ArmNotReadyError,
+    EmergencyStopError,
+    EnableTimeoutError,
+    Fault,
+    FirmwareFaultError,
+    HighFollowError,
+    PartialCommandError,
+    PiperConnectionError,
+    PiperError,
+)
 from .link import PiperLink
 from .safety import SDK_SOFT_LIMITS, JointLimits, check_finite, clamp, safe_target
 from .state import ArmState
 
 log = logging.getLogger(__name__)
 
-FEEDBACK_PERIOD_S = 0.005  # 0x2A1..0x2A8 at 200 Hz
+FEEDBACK_PERIOD_S = 0.005  # 0x2A1..0x2A8 and 0x251..0x256 at 200 Hz
+LOW_SPEED_PERIOD_S = 0.025  # 0x261..0x266 (the enable bits) at 40 Hz
 ENABLE_BACKOFF_START_S = 0.01
 ENABLE_BACKOFF_CAP_S = 0.2
 REST_PERIOD_S = 0.02
 REST_TOLERANCE_RAD = 0.01
 REST_TOLERANCE_M = 0.002
+# Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
+LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
+# A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
+LIMIT_MISMATCH_RAD = math.radians(0.05)
+MOTION_MODES = ("position", "high_follow")
 
 
 class DisconnectPolicy(StrEnum):
@@ -57,40 +80,91 @@ class DisconnectPolicy(StrEnum):
     REST = "rest"  # move slowly to the rest pose, then disable; if it cannot get there, hold
 
 
-@dataclass(frozen=True)
-class DriverConfig:
-    """Bus, motion and safety settings of a ``PiperDriver`` (all safety features on by default)."""
+class Recovery(StrEnum):
+    """What ``enable`` does about faults the firmware reports (``recovery``)."""
+
+    NONE = "none"  # refuse: raise FirmwareFaultError
+    CLEAR_ERRORS = "clear_errors"  # 0x475 clear-error (joints) and 0x159 clear-error (gripper), then enable
+    RESET = "reset"  # 0x150 reset (the motors switch off for a moment), then enable
+
+
+class HighFollowExit(StrEnum):
+    """What ``enable`` in position mode does when old firmware may still be in high-follow."""
+
+    RESET = "reset"  # leave it with the reset sequence (the motors switch off for a moment)
+    REFUSE = "refuse"  # raise HighFollowError
+
+
+@dataclass
+class DriverSettings:
+    """The plain-valued driver settings, shared as they are by ``PiperFollowerConfig`` (one source)."""
 
     interface: str = "socketcan"
     channel: str = "can0"
     bitrate: int = 1_000_000
-    bus_options: Mapping[str, object] = field(default_factory=dict)
-    limits: JointLimits = SDK_SOFT_LIMITS
-    # LeRobot ``max_relative_target`` semantics: per command, each target stays within this of the
-    # measured position. One value or one per joint; None turns the step limit off.
-    max_step_rad: float | Sequence[float] | None = 0.2
-    max_gripper_step_m: float | None = 0.02
+    # "position": the firmware plans each move at speed_percent; "high_follow": 0xAD, no planning.
+    motion_mode: str = "position"
+    speed_percent: int = 50
+    gripper_effort_nm: float = 1.0
+    # Stale-feedback watchdog: no joint, gripper or status frame for longer than this stops commanding.
     feedback_timeout_s: float = 3 * FEEDBACK_PERIOD_S
     connect_timeout_s: float = 1.0
     enable_timeout_s: float = 2.0
-    speed_percent: int = 50
-    high_follow: bool = False
-    gripper_effort_nm: float = 1.0
-    disconnect_policy: DisconnectPolicy = DisconnectPolicy.HOLD
+    # After a reset, wait up to this long for the firmware's delayed motor-off (~0.73 s) before enabling.
+    reset_settle_s: float = 1.0
+    high_follow_exit: str = HighFollowExit.RESET
+    recovery: str = Recovery.NONE
+    read_firmware_limits: bool = True
+    # Also read (and watch) 0x251..0x256: joint velocities and efforts.
+    use_velocity_and_torque: bool = False
+    disconnect_policy: str = DisconnectPolicy.HOLD
     rest_pose_rad: tuple[float, ...] = (0.0,) * NUM_JOINTS
     rest_gripper_m: float = 0.0
     rest_speed_rad_s: float = 0.5
     rest_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
+        if self.motion_mode not in MOTION_MODES:
+            raise ValueError(f"motion_mode must be one of {MOTION_MODES}, got {self.motion_mode!r}")
         if not 0 <= self.speed_percent <= 100:
             raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
         if len(self.rest_pose_rad) != NUM_JOINTS:
             raise ValueError(f"rest_pose_rad needs {NUM_JOINTS} angles, got {len(self.rest_pose_rad)}")
+        for name, kind in (
+            ("disconnect_policy", DisconnectPolicy),
+            ("recovery", Recovery),
+            ("high_follow_exit", HighFollowExit),
+        ):
+            value = getattr(self, name)
+            if value not in set(kind):
+                raise ValueError(f"{name} must be one of {[k.value for k in kind]}, got {value!r}")
+
+
+@dataclass
+class DriverConfig(DriverSettings):
+    """Bus, motion and safety settings of a ``PiperDriver`` (all safety features on by default)."""
+
+    bus_options: Mapping[str, object] = field(default_factory=dict)
+    limits: JointLimits = SDK_SOFT_LIMITS
+    # LeRobot ``max_relative_target`` semantics: per command, each target stays within this of the
+    # measured position. One value or one per joint; None turns the step limit off.
+    max_step_rad: float | Sequence[float] | None = 0.2
+    max_gripper_step_m: float | None = 0.02
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
         steps = self.joint_steps()
         if steps is not None and any(s <= 0 or not math.isfinite(s) for s in steps):
             raise ValueError(f"max_step_rad must be positive and finite, got {self.max_step_rad}")
-        DisconnectPolicy(self.disconnect_policy)
+
+    @classmethod
+    def from_settings(cls, settings: DriverSettings, **extra: object) -> DriverConfig:
+        """Every ``DriverSettings`` field of ``settings`` (e.g. a robot config), plus ``extra``."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(DriverSettings)}, **extra)
+
+    @property
+    def high_follow(self) -> bool:
+        return self.motion_mode == "high_follow"
 
     def joint_steps(self) -> tuple[float, ...] | None:
         """The per-joint step limit, or None when off."""
@@ -112,20 +186,30 @@ class SentCommand:
     gripper_m: float | None
 
 
+def is_motion_recoverable(fault: Fault) -> bool:
+    """Faults that commands moving back inside the limits clear (so they do not block them)."""
+    return fault.fault in ("angle limit exceeded", "target exceeds limit")
+
+
 class PiperDriver:
     """Drives one PiPER follower over python-can; every method is safe to call from any thread."""
 
     def __init__(self, config: DriverConfig | None = None) -> None:
         self.config = config or DriverConfig()
-        self.link = PiperLink(
-            self.config.interface,
-            self.config.channel,
-            self.config.bitrate,
-            self.config.bus_options,
-            watch_ids=ID_JOINT_FEEDBACK,
-            stale_timeout_s=self.config.feedback_timeout_s,
-        )
+        cfg = self.config
+        watched = (*ID_JOINT_FEEDBACK, ID_GRIPPER_FEEDBACK, ID_ARM_STATUS)
+        if cfg.use_velocity_and_torque:
+            watched += ID_HIGH_SPEED
+        watch = dict.fromkeys(watched, cfg.feedback_timeout_s)
+        # The enable bits come at 40 Hz: allow them two of their periods more.
+        watch |= dict.fromkeys(ID_LOW_SPEED, cfg.feedback_timeout_s + 2 * LOW_SPEED_PERIOD_S)
+        self.link = PiperLink(cfg.interface, cfg.channel, cfg.bitrate, cfg.bus_options, watch, "feedback frame")
+        self.limits: JointLimits = cfg.limits  # the soft limits, narrowed to the firmware's on connect
         self._estopped = threading.Event()
+        self._reset_sent_at: float | None = None
+        self._enabled_before_reset = False
+        self._may_be_high_follow = False
+        self._reported_faults: tuple[Fault, ...] = ()
 
     # ------------------------------------------------------------------------------ lifecycle
     @property
@@ -137,12 +221,64 @@ class PiperDriver:
         return self._estopped.is_set()
 
     def connect(self, listen_only: bool = False) -> None:
-        """Open the bus, wait for the arm's feedback (joints, gripper, status, driver info) and, unless
-        ``listen_only``, ask for the firmware version (it appears in ``state().firmware_version``)."""
+        """Open the bus and wait for the arm's feedback (joints, gripper, status, driver info). Unless
+        ``listen_only``, also ask for the firmware version (``state().firmware_version``) and read the
+        firmware's joint limits (0x472 -> 0x473), which narrow ``limits``."""
         first = (*ID_JOINT_FEEDBACK, ID_GRIPPER_FEEDBACK, ID_ARM_STATUS, *ID_LOW_SPEED)
+        if self.config.use_velocity_and_torque:
+            first += ID_HIGH_SPEED
         self.link.open(first, self.config.connect_timeout_s)
-        if not listen_only:
-            self.link.send(encode(FirmwareQuery()))
+        self.limits = self.config.limits
+        if listen_only:
+            return
+        try:
+            queries = [LimitQuery(m, LIMIT_QUERY_ANGLE_SPEED) for m in range(1, NUM_JOINTS + 1)]
+            self.link.send(encode(FirmwareQuery()), *(encode(q) for q in queries if self.config.read_firmware_limits))
+            if self.config.read_firmware_limits:
+                self._apply_firmware_limits()
+            status = self.link.state().status
+            # Someone put the arm in CAN mode before us: it may be in high-follow (not in any feedback).
+            self._may_be_high_follow = status is not None and status.value.ctrl_mode == CtrlMode.CAN
+        except BaseException:
+            self.link.close()
+            raise
+
+    def _apply_firmware_limits(self) -> None:
+        got_all = self.link.wait_for(lambda s: len(s.motor_limits) >= NUM_JOINTS, self.config.connect_timeout_s)
+        firmware = self.link.state().motor_limits
+        if not got_all:
+            missing = [f"joint_{m}" for m in range(1, NUM_JOINTS + 1) if m not in firmware]
+            log.warning(
+                "PiPER on %s sent no firmware limits (0x473) for %s; using the soft limits only",
+                self.link.where,
+                ", ".join(missing),
+            )
+        joints = []
+        for j, (lower, upper) in enumerate(self.config.limits.joints_rad, start=1):
+            if j not in firmware:
+                joints.append((lower, upper))
+                continue
+            fw_lower, fw_upper = firmware[j].min_angle_rad, firmware[j].max_angle_rad
+            narrowed = (max(lower, fw_lower), min(upper, fw_upper))
+            if narrowed[0] > narrowed[1]:
+                raise PiperError(
+                    f"PiPER on {self.link.where}: joint_{j} soft limits [{lower:.4f}, {upper:.4f}] rad and firmware "
+                    f"limits [{fw_lower:.4f}, {fw_upper:.4f}] rad do not overlap; fix joint_limits"
+                )
+            if abs(fw_lower - lower) > LIMIT_MISMATCH_RAD or abs(fw_upper - upper) > LIMIT_MISMATCH_RAD:
+                log.warning(
+                    "PiPER on %s: joint_%d firmware limits [%.4f, %.4f] rad differ from the soft limits "
+                    "[%.4f, %.4f] rad; using [%.4f, %.4f]",
+                    self.link.where,
+                    j,
+                    fw_lower,
+                    fw_upper,
+                    lower,
+                    upper,
+                    *narrowed,
+                )
+            joints.append(narrowed)
+        self.limits = JointLimits(tuple(joints), self.config.limits.gripper_m)
 
     def close(self) -> None:
         """Release the bus without touching the arm (no disconnect policy)."""
@@ -170,35 +306,55 @@ class PiperDriver:
         return self.link.state()
 
     def checked_state(self) -> ArmState:
-        """The latest feedback; raises if the watchdog tripped or the firmware reports faults."""
-        self.link.raise_if_stale()
+        """The latest feedback; raises if the watchdog tripped, the bus is off, or the firmware reports
+        faults. A joint past its limit is only logged: commands move it back (they are clamped)."""
+        self.link.raise_if_unhealthy()
         state = self.link.state()
         faults = state.faults()
-        if faults:
-            raise FirmwareFaultError(faults)
+        blocking = tuple(f for f in faults if not is_motion_recoverable(f))
+        if blocking:
+            raise FirmwareFaultError(blocking)
+        if faults != self._reported_faults:
+            self._reported_faults = faults
+            if faults:
+                log.warning(
+                    "PiPER on %s reports %s; commands are clamped back inside the limits",
+                    self.link.where,
+                    "; ".join(map(str, faults)),
+                )
         return state
+
+    def rearm_watchdog(self) -> None:
+        """Resume after a watchdog trip or bus-off, once fresh feedback arrives again (logged)."""
+        self.link.rearm()
 
     # -------------------------------------------------------------------------------- enable
     def enable(self) -> None:
-        """Enable all joints and the gripper, then select CAN command mode.
+        """Recover faults per ``recovery``, leave high-follow if needed, enable every joint and the
+        gripper, then select and confirm the motion mode.
 
+        After a reset the firmware switches the motors off ~0.73 s late: that is waited out first.
         There is no acknowledgement: the handshake resends 0x471 with capped exponential back-off
         (at least twice) until driver-info frames received *after* the first request show every
-        enable bit, then sends 0x151 and waits for the status frame to report CAN mode.
+        enable bit, then sends 0x151 and waits for the status frame to report CAN mode and MOVE J.
         """
+        self._recover_faults()
+        self._leave_high_follow()
+        self._wait_out_reset()
         timeout = self.config.enable_timeout_s
         started = time.time()  # frames are stamped on this clock: only later ones count
         deadline = time.monotonic() + timeout
         backoff = ENABLE_BACKOFF_START_S
         requests = 0
+        request = encode(MotorEnable(MOTOR_ALL_JOINTS, True))
         while True:
             try:
-                self.link.send(encode(MotorEnable(MOTOR_ALL_JOINTS, True)), self._gripper_hold(True))
+                self.link.send(request, self._gripper_hold(GripperStatusCode.ENABLE))
                 requests += 1
             except PiperConnectionError as exc:  # e.g. ENOBUFS: a full TX queue; back off and retry
                 log.debug("enable request not sent: %s", exc)
             remaining = deadline - time.monotonic()
-            enabled = self.link.wait_for(lambda s: _fresh_enabled(s, started), max(min(backoff, remaining), 0))
+            enabled = self.link.wait_for(lambda s: not _disabled_parts(s, started), max(min(backoff, remaining), 0))
             if enabled and requests >= 2:
                 break
             if time.monotonic() >= deadline:
@@ -211,17 +367,68 @@ class PiperDriver:
             backoff = min(backoff * 2, ENABLE_BACKOFF_CAP_S)
         self._select_mode(deadline)
 
+    def _recover_faults(self) -> None:
+        self.link.raise_if_unhealthy()
+        faults = tuple(f for f in self.link.state().faults() if not is_motion_recoverable(f))
+        if not faults:
+            return
+        how = Recovery(self.config.recovery)
+        if how == Recovery.NONE:
+            raise FirmwareFaultError(faults)
+        log.warning("PiPER on %s reports %s; recovering (%s)", self.link.where, "; ".join(map(str, faults)), how)
+        if how == Recovery.CLEAR_ERRORS:
+            left = self.clear_errors()
+            if left:
+                raise FirmwareFaultError(left)
+        else:
+            self.reset()
+
+    def _leave_high_follow(self) -> None:
+        if self.config.high_follow or not self._may_be_high_follow:
+            return
+        release = firmware_release(self.link.state().firmware_version)
+        if release is not None and release >= LEAVES_HIGH_FOLLOW_WITHOUT_RESET:
+            return
+        version = self.link.state().firmware_version or "of unknown version"
+        if self.config.high_follow_exit == HighFollowExit.REFUSE:
+            raise HighFollowError(
+                f"PiPER on {self.link.where} may still be in high-follow (0xAD), and firmware {version} (older "
+                "than S-V1.8-5) ignores the switch to position mode until a reset; support the arm and run "
+                "piper-recover --reset, or set high_follow_exit=reset"
+            )
+        log.warning(
+            "PiPER on %s may be in high-follow (0xAD) and firmware %s ignores leaving it without a reset: "
+            "resetting (the motors switch off for a moment)",
+            self.link.where,
+            version,
+        )
+        self.reset()
+
+    def _wait_out_reset(self) -> None:
+        """After our reset: wait until the firmware has switched the motors off (bounded)."""
+        if self._reset_sent_at is None:
+            return
+        sent_at = self._reset_sent_at
+        remaining = sent_at + self.config.reset_settle_s - time.time()
+        if self._enabled_before_reset:  # the motor-off shows as enable bits going clear after the reset
+            seen = self.link.wait_for(lambda s: _joints_disabled_since(s, sent_at), max(remaining, 0.0))
+            if not seen:
+                log.info("PiPER on %s: motors still on %.1f s after the reset", self.link.where, remaining)
+        elif remaining > 0:  # already off: nothing to observe, wait the delay itself
+            time.sleep(remaining)
+        self._reset_sent_at = None
+
     def _select_mode(self, deadline: float) -> None:
         sent_at = time.time()
         self.link.send(self._mode_frame())
 
-        def in_can_mode(s: ArmState) -> bool:
-            return s.status is not None and s.status.timestamp > sent_at and s.status.value.ctrl_mode == CtrlMode.CAN
+        def confirmed(s: ArmState) -> bool:
+            return s.status is not None and s.status.timestamp > sent_at and _mode_problem(s) is None
 
-        if not self.link.wait_for(in_can_mode, max(deadline - time.monotonic(), FEEDBACK_PERIOD_S * 4)):
-            raise EnableTimeoutError(
-                f"PiPER on {self.link.where} did not enter CAN command mode (0x151) after enabling"
-            )
+        if not self.link.wait_for(confirmed, max(deadline - time.monotonic(), FEEDBACK_PERIOD_S * 4)):
+            problem = _mode_problem(self.link.state()) or "no status frame"
+            raise EnableTimeoutError(f"PiPER on {self.link.where} did not confirm the 0x151 mode change: {problem}")
+        self._may_be_high_follow = self.config.high_follow
 
     def disable(self) -> bool:
         """Disable all motors and the gripper; True once the arm reports every enable bit clear.
@@ -229,19 +436,79 @@ class PiperDriver:
         Warning: a raised arm falls when its motors lose power.
         """
         sent_at = time.time()
-        frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(False))
+        frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
         self.link.send(*frames)
         self.link.send(*frames)
+        return self.link.wait_for(lambda s: _all_disabled_since(s, sent_at), self.config.enable_timeout_s)
 
-        def all_disabled(s: ArmState) -> bool:
-            fresh = [*s.low_speed, s.gripper]
-            return all(f is not None and f.timestamp > sent_at and not f.value.enabled for f in fresh)
+    # ----------------------------------------------------------------------------- recovery
+    def clear_errors(self) -> tuple[Fault, ...]:
+        """Clear the joints' (0x475) and the gripper's (0x159) error codes, without touching the motors'
+        power; returns the faults still reported afterwards (logged)."""
+        log.warning("PiPER on %s: clearing error codes (0x475, 0x159)", self.link.where)
+        gripper = self.link.state().gripper
+        code = GripperStatusCode.ENABLE_CLEAR_ERROR
+        if gripper is None or not gripper.value.enabled:
+            code = GripperStatusCode.DISABLE_CLEAR_ERROR
+        sent_at = time.time()
+        self.link.send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code))
 
-        return self.link.wait_for(all_disabled, self.config.enable_timeout_s)
+        def cleared(s: ArmState) -> bool:
+            fresh = s.status is not None and s.status.timestamp > sent_at
+            return fresh and all(i is not None and i.timestamp > sent_at for i in s.low_speed) and not _blocking(s)
+
+        self.link.wait_for(cleared, self.config.enable_timeout_s)
+        left = _blocking(self.link.state())
+        if left:
+            log.error("PiPER on %s still reports %s after clearing errors", self.link.where, "; ".join(map(str, left)))
+        else:
+            log.warning("PiPER on %s: error codes cleared", self.link.where)
+        return left
+
+    def reset(self) -> None:
+        """Reset the firmware (0x150 02): clears errors and the e-stop, drops to standby, and ~0.73 s
+        later switches the motors off. Call ``enable`` next (it waits the motor-off out).
+
+        Warning: a raised arm drops a little between the motor-off and the re-enable.
+        """
+        log.warning("PiPER on %s: reset (0x150 02)", self.link.where)
+        state = self.link.state()
+        self._enabled_before_reset = all(state.joints_enabled)
+        sent_at = time.time()
+        self.link.send(encode(EmergencyStop(EStopAction.RESUME)))
+        self._reset_sent_at = sent_at
+        self._may_be_high_follow = False
+
+        def reset_seen(s: ArmState) -> bool:
+            return (
+                s.status is not None
+                and s.status.timestamp > sent_at
+                and s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP
+            )
+
+        if not self.link.wait_for(reset_seen, self.config.enable_timeout_s):
+            raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
+
+    def recover(self, how: str = Recovery.RESET) -> None:
+        """Bring a faulted or e-stopped arm back: ``clear_errors`` or ``reset``, then re-enable."""
+        how = Recovery(how)
+        if how == Recovery.CLEAR_ERRORS:
+            left = self.clear_errors()
+            if left:
+                raise FirmwareFaultError(left)
+        elif how == Recovery.RESET:
+            self.reset()
+        self.enable()
+        self._estopped.clear()
 
     # ------------------------------------------------------------------------------- motion
     def command(self, joints_rad: Sequence[float], gripper_m: float | None = None) -> SentCommand:
-        """Clamp to the soft limits and the step limit, then send 0x151 + 0x155..0x157 (+ 0x159)."""
+        """Clamp to the limits and the step limit, then send 0x151 + 0x155..0x157 (+ 0x159).
+
+        Refused (nothing sent) unless the latest feedback shows every joint (and the gripper, if it
+        gets a target) enabled, CAN command mode and MOVE J, no blocking fault, and no e-stop request;
+        the e-stop is checked again under the send lock before every frame.
+        """
         steps = self.config.joint_steps()
         return self._command(joints_rad, gripper_m, steps, self.config.max_gripper_step_m)
 
@@ -259,23 +526,45 @@ class PiperDriver:
         if gripper_m is not None:
             gripper_m = float(gripper_m)
             check_finite([gripper_m], "gripper target")
-        if self.estopped:
-            raise EmergencyStopError(f"PiPER on {self.link.where}: emergency stop engaged; call resume() first")
+        self._refuse_if_estopped()
         state = self.checked_state()
+        self._refuse_if_not_ready(state, gripper_m is not None)
         present = state.joint_positions_rad
-        assert present is not None and state.gripper is not None  # connect() waited for both
-        limits = self.config.limits
+        if present is None or state.gripper is None:  # connect() waited for both: never after connect
+            raise ArmNotReadyError(f"PiPER on {self.link.where}: no joint or gripper feedback yet")
         safe = tuple(
             safe_target(goal, now, bounds, None if steps is None else steps[j])
-            for j, (goal, now, bounds) in enumerate(zip(goals, present, limits.joints_rad, strict=True))
+            for j, (goal, now, bounds) in enumerate(zip(goals, present, self.limits.joints_rad, strict=True))
         )
         frames: list[Frame] = [self._mode_frame(), *encode_joint_targets(safe)]
         safe_gripper = None
         if gripper_m is not None:
-            safe_gripper = safe_target(gripper_m, state.gripper.value.opening_m, limits.gripper_m, gripper_step)
+            safe_gripper = safe_target(gripper_m, state.gripper.value.opening_m, self.limits.gripper_m, gripper_step)
             frames.append(self._gripper_frame(safe_gripper, GripperStatusCode.ENABLE))
-        self.link.send(*frames)
+        try:
+            self.link.send(*frames, guard=self._refuse_if_estopped)
+        except PartialCommandError as exc:
+            if isinstance(exc.cause, EmergencyStopError):  # the e-stop cut in between two frames
+                raise EmergencyStopError(str(exc)) from exc
+            raise
         return SentCommand(safe, safe_gripper)
+
+    def _refuse_if_estopped(self) -> None:
+        if self._estopped.is_set():
+            raise EmergencyStopError(f"PiPER on {self.link.where}: emergency stop engaged; call resume() first")
+
+    def _refuse_if_not_ready(self, state: ArmState, with_gripper: bool) -> None:
+        problem = _mode_problem(state)
+        if problem is not None:
+            raise ArmNotReadyError(f"PiPER on {self.link.where}: {problem}; command refused, call enable()")
+        disabled = [f"joint_{j}" for j, on in enumerate(state.joints_enabled, start=1) if not on]
+        if with_gripper and not state.gripper_enabled:
+            disabled.append("gripper")
+        if disabled:
+            raise ArmNotReadyError(
+                f"PiPER on {self.link.where}: feedback shows {', '.join(disabled)} disabled (limp); "
+                "command refused, call enable()"
+            )
 
     def move_to_rest(self) -> bool:
         """Walk to the rest pose at ``rest_speed_rad_s``; True once there (within 0.01 rad, 2 mm)."""
@@ -285,11 +574,8 @@ class PiperDriver:
         deadline = time.monotonic() + cfg.rest_timeout_s
         while time.monotonic() < deadline:
             state = self.checked_state()
-            joints = state.joint_positions_rad
-            assert joints is not None and state.gripper is not None
-            if all(abs(a - b) <= REST_TOLERANCE_RAD for a, b in zip(joints, cfg.rest_pose_rad, strict=True)) and (
-                abs(state.gripper.value.opening_m - cfg.rest_gripper_m) <= REST_TOLERANCE_M
-            ):
+            joints, gripper = state.joint_positions_rad, state.gripper
+            if joints is not None and gripper is not None and _at(joints, gripper.value.opening_m, cfg):
                 return True
             self._command(cfg.rest_pose_rad, cfg.rest_gripper_m, steps, cfg.max_gripper_step_m)
             time.sleep(REST_PERIOD_S)
@@ -297,31 +583,19 @@ class PiperDriver:
 
     # ------------------------------------------------------------------------------- e-stop
     def emergency_stop(self) -> None:
-        """Quick stop (0x150 01): the firmware damps the arm, which sinks slowly. Motion is refused
-        until ``resume``."""
+        """Quick stop (0x150 01): the firmware damps the arm, which sinks slowly. From this call on no
+        motion frame leaves the driver (checked under the send lock) until ``resume``."""
         self._estopped.set()
         self.link.send(encode(EmergencyStop(EStopAction.STOP)))
 
     def resume(self) -> None:
-        """Leave the e-stop: reset (0x150 02), re-enable and reselect CAN mode.
+        """Leave the e-stop: reset (0x150 02), wait out the firmware's delayed motor-off, re-enable and
+        reselect the motion mode.
 
-        Warning: the firmware's reset cuts motor power for a moment, so a raised arm drops a little
-        before the re-enable catches it.
+        Warning: the reset switches the motors off for a moment, so a raised arm drops a little before
+        the re-enable catches it.
         """
-        sent_at = time.time()
-        self.link.send(encode(EmergencyStop(EStopAction.RESUME)))
-
-        def reset_seen(s: ArmState) -> bool:
-            return (
-                s.status is not None
-                and s.status.timestamp > sent_at
-                and s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP
-            )
-
-        if not self.link.wait_for(reset_seen, self.config.enable_timeout_s):
-            raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
-        self._estopped.clear()
-        self.enable()
+        self.recover(Recovery.RESET)
 
     # ------------------------------------------------------------------------------ frames
     def _mode_frame(self) -> Frame:
@@ -331,17 +605,44 @@ class PiperDriver:
     def _gripper_frame(self, opening_m: float, code: GripperStatusCode) -> Frame:
         return encode(GripperCommand(opening_m, self.config.gripper_effort_nm, code))
 
-    def _gripper_hold(self, enable: bool) -> Frame:
-        """A gripper frame that (dis)enables it and targets where it is now (within its range)."""
+    def _gripper_hold(self, code: GripperStatusCode) -> Frame:
+        """A gripper frame with ``code`` that targets where the gripper is now (within its range)."""
         gripper = self.link.state().gripper
         opening = gripper.value.opening_m if gripper is not None else 0.0
-        opening = clamp(opening, *self.config.limits.gripper_m)
-        return self._gripper_frame(opening, GripperStatusCode.ENABLE if enable else GripperStatusCode.DISABLE)
+        return self._gripper_frame(clamp(opening, *self.limits.gripper_m), code)
 
 
-def _fresh_enabled(state: ArmState, since: float) -> bool:
-    """Every joint's and the gripper's enable bit set, in frames received after ``since``."""
-    return not _disabled_parts(state, since)
+def _blocking(state: ArmState) -> tuple[Fault, ...]:
+    return tuple(f for f in state.faults() if not is_motion_recoverable(f))
+
+
+def _mode_problem(state: ArmState) -> str | None:
+    """Why the status frame does not show CAN command mode and MOVE J (None when it does)."""
+    if state.status is None:
+        return "no status frame yet"
+    status = state.status.value
+    if status.ctrl_mode == CtrlMode.CAN and status.mode_feed == MoveMode.J:
+        return None
+    return f"the arm reports control mode {_name(CtrlMode, status.ctrl_mode)} and move mode " + (
+        f"{_name(MoveMode, status.mode_feed)}, not CAN command mode and MOVE J"
+    )
+
+
+def _name(kind: type[CtrlMode] | type[MoveMode], value: int) -> str:
+    try:
+        return kind(value).name
+    except ValueError:
+        return f"0x{value:02X}"
+
+
+def _joints_disabled_since(state: ArmState, since: float) -> bool:
+    return all(f is not None and f.timestamp > since and not f.value.enabled for f in state.low_speed)
+
+
+def _all_disabled_since(state: ArmState, since: float) -> bool:
+    gripper = state.gripper
+    fresh_gripper_off = gripper is not None and gripper.timestamp > since and not gripper.value.enabled
+    return _joints_disabled_since(state, since) and fresh_gripper_off
 
 
 def _disabled_parts(state: ArmState, since: float) -> list[str]:
@@ -354,3 +655,9 @@ def _disabled_parts(state: ArmState, since: float) -> list[str]:
     if gripper is None or gripper.timestamp <= since or not gripper.value.enabled:
         parts.append("gripper")
     return parts
+
+
+def _at(joints: Sequence[float], gripper_m: float, cfg: DriverConfig) -> bool:
+    """At the rest pose (within 0.01 rad and 2 mm)."""
+    near = all(abs(a - b) <= REST_TOLERANCE_RAD for a, b in zip(joints, cfg.rest_pose_rad, strict=True))
+    return near and abs(gripper_m - cfg.rest_gripper_m) <= REST_TOLERANCE_M

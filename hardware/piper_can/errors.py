@@ -25,6 +25,33 @@ class EmergencyStopError(PiperError):
     """A motion command was refused because the emergency stop is engaged."""
 
 
+class ArmNotReadyError(PiperError):
+    """A command was refused: feedback says a motor is disabled or the arm is not in the mode we set."""
+
+
+class HighFollowError(PiperError):
+    """The arm may be in high-follow (0xAD), which this firmware leaves only after a reset."""
+
+
+class CanBusError(PiperConnectionError):
+    """The CAN controller reported bus-off (or the bus failed): nothing reaches the arm."""
+
+
+class PartialCommandError(PiperError):
+    """A multi-frame command stopped half-way: some of its frames are on the bus, the rest are not."""
+
+    def __init__(self, where: str, sent: tuple[int, ...], unsent: tuple[int, ...], cause: Exception):
+        self.sent = sent
+        self.unsent = unsent
+        self.cause = cause
+        ids = ", ".join(f"0x{i:X}" for i in sent)
+        missing = ", ".join(f"0x{i:X}" for i in unsent)
+        super().__init__(
+            f"PiPER on {where}: command stopped after {len(sent)} of {len(sent) + len(unsent)} frames "
+            f"(sent {ids}; not sent {missing}): {cause}"
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class Fault:
     """One fault reported by the firmware: ``part`` is ``joint_N``, ``gripper`` or ``arm``."""

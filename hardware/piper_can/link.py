@@ -1,13 +1,15 @@
 """One python-can bus to a PiPER: a reader thread feeding a ``FeedbackCache``, a stale-feedback
-watchdog, and locked sends.
+watchdog, CAN error frames, and locked sends.
 
 Every frame is stamped with its arrival time: python-can's ``msg.timestamp`` (the kernel's receive time
 on socketcan and udp_multicast, the send time on virtual), or this process's clock where an interface
-stamps frames on another clock. The watchdog watches a set of frame IDs (the joint frames) and counts
-as stale when some watched ID last *arrived* more than ``stale_timeout_s`` ago. The reader drains
-every queued frame before it judges, and trips (latched) when the bus went silent or the watched
-frames stopped; ``raise_if_stale`` applies the same test when asked, so a reader that fell behind
-(starved of CPU) cannot pass old positions off as fresh.
+stamps frames on another clock. The ``Watchdog`` gives each watched frame ID its own timeout and counts
+as stale when some watched ID last *arrived* longer ago than that. The reader drains every queued
+frame before it judges, and trips (latched) when the bus went silent or a watched frame stopped;
+``raise_if_unhealthy`` applies the same test when asked, so a reader that fell behind (starved of CPU)
+cannot pass old positions off as fresh. A trip is re-armed only explicitly, and only once every
+watched frame has arrived again (``rearm``). CAN error frames are counted and logged; bus-off is
+latched like a trip.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections import Counter
+from collections.abc import Callable, Mapping
 
 import can
 
@@ -25,12 +28,13 @@ from .codec import (
     FEEDBACK_IDS,
     ID_EMERGENCY_STOP,
     ID_FIRMWARE,
+    ID_JOINT_CONFIG,
     ID_LIMIT_QUERY,
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
     Frame,
 )
-from .errors import FeedbackStaleError, PiperConnectionError
+from .errors import CanBusError, FeedbackStaleError, PartialCommandError, PiperConnectionError
 from .state import ArmState, FeedbackCache
 
 log = logging.getLogger(__name__)
@@ -39,6 +43,7 @@ log = logging.getLogger(__name__)
 OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_EMERGENCY_STOP,
     ID_FIRMWARE,
+    ID_JOINT_CONFIG,
     ID_LIMIT_QUERY,
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
@@ -49,6 +54,20 @@ _POLL_S = 0.002
 # python-can timestamps on the time.time() clock for socketcan, udp_multicast and virtual; an interface
 # whose stamps are further off than this uses another clock (e.g. the adapter's), so use our own.
 _PLAUSIBLE_CLOCK_SKEW_S = 5.0
+# SocketCAN error classes (linux/can/error.h), carried in an error frame's ID.
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_CLASSES = {
+    0x001: "TX timeout",
+    0x002: "lost arbitration",
+    0x004: "controller problem",
+    0x008: "protocol violation",
+    0x010: "transceiver problem",
+    0x020: "no acknowledgement (nobody else on the bus?)",
+    CAN_ERR_BUSOFF: "bus-off",
+    0x080: "bus error",
+    0x100: "controller restarted",
+}
+_SERIOUS_ERRORS = {0x020, CAN_ERR_BUSOFF}
 
 
 def open_bus(interface: str, channel: str, bitrate: int, bus_options: Mapping[str, object]) -> can.BusABC:
@@ -70,8 +89,64 @@ def open_bus(interface: str, channel: str, bitrate: int, bus_options: Mapping[st
         ) from exc
 
 
+class Watchdog:
+    """Pure stale-feedback judgement on given times: every watched ID must arrive within its timeout."""
+
+    def __init__(self, timeouts: Mapping[int, float]) -> None:
+        for frame_id, limit in timeouts.items():
+            if limit <= 0:
+                raise ValueError(f"the timeout of 0x{frame_id:X} must be positive, got {limit}")
+        self.timeouts = dict(timeouts)
+        self.last_seen: dict[int, float] = {}
+        self.armed_at: float | None = None
+
+    @property
+    def armed(self) -> bool:
+        return self.armed_at is not None and bool(self.timeouts)
+
+    def _start(self, frame_id: int) -> float:
+        """When ``frame_id``'s window began: its last arrival, but not before arming."""
+        return max(self.last_seen.get(frame_id, 0.0), self.armed_at or 0.0)
+
+    def arm(self, now: float) -> None:
+        """Start watching; the window of every ID starts no earlier than ``now``."""
+        self.armed_at = now
+
+    def disarm(self) -> None:
+        self.armed_at = None
+
+    def seen(self, frame_id: int, arrived: float) -> None:
+        if frame_id in self.timeouts:
+            self.last_seen[frame_id] = arrived
+
+    def overdue(self, now: float) -> list[tuple[int, float]]:
+        """``(id, age)`` of every watched ID older than its timeout at ``now`` (none when disarmed)."""
+        if not self.armed:
+            return []
+        found = []
+        for frame_id, limit in self.timeouts.items():
+            age = now - self._start(frame_id)
+            if age > limit:
+                found.append((frame_id, age))
+        return found
+
+    def next_deadline(self) -> float | None:
+        """The earliest time some watched ID becomes stale if nothing more arrives."""
+        if not self.armed:
+            return None
+        return min(self._start(i) + limit for i, limit in self.timeouts.items())
+
+    def missing_since(self, since: float, now: float) -> list[int]:
+        """Watched IDs not heard after ``since`` or older than their timeout at ``now``."""
+        return [
+            i
+            for i, limit in self.timeouts.items()
+            if self.last_seen.get(i, 0.0) <= since or now - self.last_seen[i] > limit
+        ]
+
+
 class PiperLink:
-    """Reader thread, state cache, watchdog and thread-safe sends on one CAN bus."""
+    """Reader thread, state cache, watchdog, error frames and thread-safe sends on one CAN bus."""
 
     def __init__(
         self,
@@ -79,29 +154,25 @@ class PiperLink:
         channel: str,
         bitrate: int = 1_000_000,
         bus_options: Mapping[str, object] | None = None,
-        watch_ids: Iterable[int] = (),
-        stale_timeout_s: float = 0.015,
-        watch_name: str = "joint feedback",
+        watch: Mapping[int, float] | None = None,
+        watch_name: str = "feedback",
     ) -> None:
-        if stale_timeout_s <= 0:
-            raise ValueError(f"stale_timeout_s must be positive, got {stale_timeout_s}")
         self.interface = interface
         self.channel = channel
         self.bitrate = bitrate
         self.bus_options = dict(bus_options or {})
-        self.watch_ids = frozenset(watch_ids)
-        self.stale_timeout_s = stale_timeout_s
+        self.watchdog = Watchdog(watch or {})
         self.watch_name = watch_name
         self.cache = FeedbackCache()
         self.bad_frames = 0
+        self.error_frames: Counter[str] = Counter()
         self._bus: can.BusABC | None = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._armed = False
-        self._armed_at = 0.0
-        self._last_seen: dict[int, float] = {}
+        self._heard: set[int] = set()
         self._stale: FeedbackStaleError | None = None
+        self._bus_error: CanBusError | None = None
         self.stale_at: float | None = None
 
     @property
@@ -112,32 +183,46 @@ class PiperLink:
     def is_open(self) -> bool:
         return self._bus is not None
 
-    def open(self, first_frames: Iterable[int], timeout_s: float) -> None:
+    def open(self, first_frames: tuple[int, ...], timeout_s: float) -> None:
         """Open the bus, start the reader and wait until every ID in ``first_frames`` was heard."""
         if self._bus is not None:
             raise PiperConnectionError(f"the CAN bus {self.where} is already open")
         self._bus = open_bus(self.interface, self.channel, self.bitrate, self.bus_options)
         self.cache = FeedbackCache()
-        self._last_seen = {}
+        self._heard = set()
+        self.watchdog.last_seen.clear()
+        self.error_frames.clear()
+        self._bus_error = None
         self._stop.clear()
         self._thread = threading.Thread(target=self._read_loop, name=f"piper-reader-{self.channel}", daemon=True)
         self._thread.start()
         wanted = frozenset(first_frames)
-        if not self._wait(lambda: all(i in self._last_seen for i in wanted), timeout_s):
+        if not self._wait(lambda: wanted <= self._heard, timeout_s):
             self.close()
-            missing = ", ".join(f"0x{i:X}" for i in sorted(wanted) if i not in self._last_seen)
+            missing = ", ".join(f"0x{i:X}" for i in sorted(wanted - self._heard))
             raise PiperConnectionError(
                 f"no PiPER heard on {self.where} within {timeout_s:.1f} s (missing frames {missing}); "
                 "check the channel, the wiring and that the arm is powered"
             )
-        self.arm_watchdog()
+        self._arm(time.time())
 
-    def arm_watchdog(self) -> None:
-        """(Re)start watching: clears a previous trip; the window starts now."""
-        self._armed_at = time.time()
+    def _arm(self, now: float) -> None:
         self._stale = None
         self.stale_at = None
-        self._armed = bool(self.watch_ids)
+        self.watchdog.arm(now)
+
+    def rearm(self) -> None:
+        """Re-arm a tripped watchdog (and clear a bus-off) once every watched frame arrived again after
+        the trip; otherwise raise ``FeedbackStaleError`` naming what is still missing."""
+        now = time.time()
+        since = self.stale_at if self.stale_at is not None else (self.watchdog.armed_at or 0.0)
+        missing = self.watchdog.missing_since(since, now)
+        if self._thread is None or not self._thread.is_alive() or missing:
+            what = ", ".join(f"0x{i:X}" for i in missing) or "the reader"
+            raise FeedbackStaleError(f"cannot re-arm the watchdog on {self.where}: still no fresh {what}")
+        log.warning("PiPER on %s: watchdog re-armed after fresh feedback (was: %s)", self.where, self._stale)
+        self._bus_error = None
+        self._arm(now)
 
     def close(self) -> None:
         """Stop the reader and release the bus; safe to call twice."""
@@ -148,40 +233,60 @@ class PiperLink:
         bus, self._bus = self._bus, None
         if bus is not None:
             bus.shutdown()
-        self._armed = False
+        self.watchdog.disarm()
 
-    def send(self, *frames: Frame) -> None:
-        """Send frames back to back under one lock (no other thread's frame in between)."""
+    def send(self, *frames: Frame, guard: Callable[[], None] | None = None) -> None:
+        """Send frames back to back under one lock (no other thread's frame in between).
+
+        ``guard`` runs under the lock before each frame and may raise to stop the rest. A failure after
+        the first frame raises ``PartialCommandError`` naming the frames sent and not sent.
+        """
         bus = self._bus
         if bus is None:
             raise PiperConnectionError(f"the CAN bus {self.where} is not open")
         with self._send_lock:
-            for frame in frames:
-                msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+            for i, frame in enumerate(frames):
                 try:
-                    bus.send(msg, timeout=0.05)
-                except can.CanError as exc:
-                    raise PiperConnectionError(
-                        f"sending 0x{frame.arbitration_id:X} on {self.where} failed: {exc}"
-                    ) from exc
+                    if guard is not None:
+                        guard()
+                    self._send_one(bus, frame)
+                except Exception as exc:
+                    if i == 0:
+                        raise
+                    ids = tuple(f.arbitration_id for f in frames)
+                    raise PartialCommandError(self.where, ids[:i], ids[i:], exc) from exc
+
+    def _send_one(self, bus: can.BusABC, frame: Frame) -> None:
+        msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+        try:
+            bus.send(msg, timeout=0.05)
+        except can.CanError as exc:
+            raise PiperConnectionError(f"sending 0x{frame.arbitration_id:X} on {self.where} failed: {exc}") from exc
 
     def state(self) -> ArmState:
         return self.cache.snapshot()
 
     @property
     def stale_error(self) -> FeedbackStaleError | None:
-        """The watchdog's error once tripped (it stays tripped until ``arm_watchdog``)."""
+        """The watchdog's error once tripped (it stays tripped until ``rearm``)."""
         return self._stale
 
-    def raise_if_stale(self) -> None:
-        """Raise ``FeedbackStaleError`` if the watchdog tripped, trips now, or the reader died."""
+    @property
+    def bus_error(self) -> CanBusError | None:
+        """Bus-off, once the controller reported it (it stays until ``rearm``)."""
+        return self._bus_error
+
+    def raise_if_unhealthy(self) -> None:
+        """Raise if the reader died, the bus went off, or the watchdog tripped (or trips now)."""
         if self._thread is None or not self._thread.is_alive():
             raise FeedbackStaleError(f"the CAN reader for {self.where} is not running; reconnect")
-        if self._armed and self._stale is None:
+        if self._bus_error is not None:
+            raise self._bus_error
+        if self.watchdog.armed and self._stale is None:
             # Frames may be queued for a reader that merely waits for the GIL: give it up to one
             # timeout to drain them before judging.
-            deadline = time.monotonic() + self.stale_timeout_s
-            while time.time() - self._evidence_start() > self.stale_timeout_s and time.monotonic() < deadline:
+            deadline = time.monotonic() + min(self.watchdog.timeouts.values())
+            while self.watchdog.overdue(time.time()) and time.monotonic() < deadline:
                 time.sleep(_POLL_S / 4)
             self._check_age(time.time())
         if self._stale is not None:
@@ -202,28 +307,26 @@ class PiperLink:
             time.sleep(_POLL_S)
 
     # ---------------------------------------------------------------------------- reader thread
-    def _evidence_start(self) -> float:
-        """When the watched set was last complete: the oldest watched arrival (or the arming time)."""
-        oldest = min((self._last_seen.get(i, 0.0) for i in self.watch_ids), default=0.0)
-        return max(oldest, self._armed_at)
-
     def _check_age(self, now: float) -> None:
-        age = now - self._evidence_start()
-        if age > self.stale_timeout_s and self._stale is None:
+        overdue = self.watchdog.overdue(now)
+        if overdue and self._stale is None:
+            frame_id, age = max(overdue, key=lambda item: item[1] - self.watchdog.timeouts[item[0]])
             self.stale_at = now
             self._stale = FeedbackStaleError(
-                f"stale feedback: no {self.watch_name} from the PiPER on {self.where} for {age * 1e3:.0f} ms "
-                f"(limit {self.stale_timeout_s * 1e3:.0f} ms); commands stopped"
+                f"stale feedback: no {self.watch_name} 0x{frame_id:X} from the PiPER on {self.where} for "
+                f"{age * 1e3:.0f} ms (limit {self.watchdog.timeouts[frame_id] * 1e3:.0f} ms); commands stopped"
             )
             log.error("%s", self._stale)
 
     def _read_loop(self) -> None:
         bus = self._bus
-        assert bus is not None
+        if bus is None:
+            return
         while not self._stop.is_set():
             wait = _IDLE_WAIT_S
-            if self._armed and self._stale is None:
-                wait = min(max(self._evidence_start() + self.stale_timeout_s - time.time(), 5e-4), wait)
+            deadline = self.watchdog.next_deadline()
+            if deadline is not None and self._stale is None:
+                wait = min(max(deadline - time.time(), 5e-4), wait)
             try:
                 msg = bus.recv(timeout=wait)
                 while True:  # drain everything queued before judging the age
@@ -240,13 +343,15 @@ class PiperLink:
                     log.error("%s", self._stale)
                 return
             # The queue was empty at ``now``: nothing that arrived before ``now`` is still unread.
-            if self._armed:
-                self._check_age(now)
+            self._check_age(now)
             self.cache.roll_rates(now)
 
     def _handle(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self._on_error_frame(msg)
+            return
         frame_id = msg.arbitration_id
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id or frame_id not in _KEPT_IDS:
+        if msg.is_remote_frame or msg.is_extended_id or frame_id not in _KEPT_IDS:
             return
         if len(msg.data) != DLC:
             self.bad_frames += 1
@@ -254,4 +359,22 @@ class PiperLink:
         now = time.time()
         arrived = msg.timestamp if abs(now - msg.timestamp) < _PLAUSIBLE_CLOCK_SKEW_S else now
         self.cache.update(frame_id, bytes(msg.data), arrived)
-        self._last_seen[frame_id] = arrived
+        self._heard.add(frame_id)
+        self.watchdog.seen(frame_id, arrived)
+
+    def _on_error_frame(self, msg: can.Message) -> None:
+        classes = [name for bit, name in CAN_ERR_CLASSES.items() if msg.arbitration_id & bit] or ["unknown"]
+        for bit, name in CAN_ERR_CLASSES.items():
+            if msg.arbitration_id & bit and not self.error_frames[name]:
+                (log.error if bit in _SERIOUS_ERRORS else log.warning)(
+                    "PiPER on %s: CAN error frame: %s (data %s)", self.where, name, bytes(msg.data).hex(" ")
+                )
+        self.error_frames.update(classes)
+        if msg.arbitration_id & CAN_ERR_BUSOFF and self._bus_error is None:
+            self._bus_error = CanBusError(
+                f"CAN bus-off on {self.where}: the adapter stopped talking to the arm; check the wiring, the "
+                f"120 ohm termination and the bitrate ({self.bitrate}), restart the interface "
+                f"(e.g. sudo ip link set {self.channel} down; sudo ip link set {self.channel} up type can "
+                f"bitrate {self.bitrate} restart-ms 100), then re-arm or reconnect"
+            )
+            log.error("%s", self._bus_error)

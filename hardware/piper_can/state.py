@@ -26,6 +26,9 @@ from .codec import (
 from .errors import Fault
 
 RATE_WINDOW_S = 0.5
+# Motor torque constants (N·m per A of 0x25x current), J1-J3 and J4-J6, as the vendor SDK scales
+# effort. Per the vendor's Q&A, firmware up to S-V1.8-2 may report J1-J3 at a quarter of the torque.
+TORQUE_CONSTANTS_NM_PER_A = (1.18125,) * 3 + (0.95844,) * 3
 _FIRMWARE_TEXT_MAX = 256
 _NOT_FAULTS = {
     ArmStatusCode.NORMAL,
@@ -63,6 +66,21 @@ class ArmState:
     def joint_positions_rad(self) -> tuple[float, ...] | None:
         """Measured joint angles, or None until all six have been heard."""
         return _values(self.joints)
+
+    @property
+    def joint_velocities_rad_s(self) -> tuple[float, ...] | None:
+        """Motor speeds from 0x251..0x256, or None until all six have been heard."""
+        if any(s is None for s in self.high_speed):
+            return None
+        return tuple(s.value.speed_rad_s for s in self.high_speed)  # type: ignore[union-attr]
+
+    @property
+    def joint_torques_nm(self) -> tuple[float, ...] | None:
+        """Motor torques (current × torque constant) from 0x251..0x256, or None until all six are heard."""
+        if any(s is None for s in self.high_speed):
+            return None
+        currents = (s.value.current_a for s in self.high_speed)  # type: ignore[union-attr]
+        return tuple(i * k for i, k in zip(currents, TORQUE_CONSTANTS_NM_PER_A, strict=True))
 
     @property
     def leader_joint_targets_rad(self) -> tuple[float, ...] | None:

@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import math
+import random
 import sys
 import threading
 import time
 
+import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from piper_can import codec
 from piper_can.driver import DisconnectPolicy, DriverConfig, PiperDriver
 from piper_can.errors import (
+    ArmNotReadyError,
     EmergencyStopError,
     EnableTimeoutError,
     FeedbackStaleError,
     FirmwareFaultError,
+    HighFollowError,
     PiperConnectionError,
 )
 from piper_can.firmware import EmulatorConfig
@@ -131,11 +137,13 @@ def test_watchdog_fires_within_three_periods_and_stops_commanding(watchdog_rig, 
     else:
         rig.arm.drop_ids = {0x2A6}
     assert wait_until(lambda: rig.driver.link.stale_error is not None, timeout=1.0)
-    last_joint_frame = min(s.timestamp for s in rig.driver.state().joints)
-    latency = rig.driver.link.stale_at - last_joint_frame
+    watchdog = rig.driver.link.watchdog
+    last_frame = min(watchdog.last_seen[i] for i, limit in watchdog.timeouts.items() if limit == 3 * PERIOD)
+    latency = rig.driver.link.stale_at - last_frame
     # No frame for more than 3 periods trips it; it must trip within 3 periods of the first missing frame.
     assert 3 * PERIOD < latency <= 4 * PERIOD, f"watchdog latency {latency * 1e3:.1f} ms"
-    assert "stale feedback: no joint feedback" in str(rig.driver.link.stale_error)
+    stale = "0x2A6" if fault == "drop one joint frame" else "0x2A1"  # the status frame leads each cycle
+    assert f"stale feedback: no feedback frame {stale}" in str(rig.driver.link.stale_error)
     rig.drain()
     with pytest.raises(FeedbackStaleError):
         rig.driver.command(POSE, 0.02)
@@ -233,7 +241,6 @@ def test_estop_refuses_motion_and_resume_re_enables(rig):
         (lambda e: e.inject_fault("comm_error", 2), "joint_2", "communication error"),
         (lambda e: e.inject_fault("stall", 6), "joint_6", "stall protection triggered"),
         (lambda e: e.inject_fault("over_current", 7), "gripper", "over-current"),
-        (lambda e: e.set_position(5, math.radians(80)), "joint_5", "angle limit exceeded"),
     ],
 )
 def test_firmware_error_bits_become_exceptions_naming_joint_and_fault(rig, inject, part, fault):
@@ -283,3 +290,124 @@ def test_disconnect_rest_holds_when_the_pose_cannot_be_reached():
         rig.driver.disconnect()
         assert rig.arm.enabled == (True,) * 6  # not dropped
         assert not rig.driver.is_connected
+
+
+# ------------------------------------------------------------------ never command a limp arm (issue 12.1)
+def test_resume_waits_out_the_firmwares_delayed_motor_off(rig):
+    walk_to(rig.driver, POSE)
+    rig.driver.emergency_stop()
+    assert wait_until(lambda: rig.arm.estopped)
+    rig.drain()
+    rig.driver.resume()
+    resets = [m.timestamp for m in rig.drain() if m.arbitration_id == 0x150 and m.data[0] == 0x02]
+    # The firmware switches the motors off 0.727 s after the reset: an arm "enabled" before that goes limp.
+    time.sleep(max(0.0, resets[0] + 0.85 - time.time()))
+    assert rig.arm.enabled == (True,) * 6 and rig.arm.gripper_enabled
+    walk_to(rig.driver, POSE)
+
+
+def test_a_command_is_refused_when_feedback_shows_a_disabled_motor(rig):
+    time.sleep(0.1)  # the handshake's last enable request (20 ms latency) has been applied
+    with rig.emulator.locked() as arm:
+        arm.set_enabled(3, False)  # a driver that cut out, no host frame involved
+    assert wait_until(lambda: rig.driver.state().joints_enabled[2] is False)
+    rig.drain()
+    with pytest.raises(ArmNotReadyError, match=r"feedback shows joint_3 disabled \(limp\); command refused"):
+        rig.driver.command(POSE)
+    time.sleep(0.02)
+    assert motion_frames(rig.drain()) == []
+
+
+@pytest.mark.parametrize(
+    ("mode", "reported"),
+    [(bytes([0x00, 0x01, 50, 0]), "control mode STANDBY and move mode J"), (bytes([0x01, 0x00, 50, 0]), "move mode P")],
+)
+def test_a_command_is_refused_when_the_arm_left_the_mode_we_set(rig, mode, reported):
+    rig.monitor.send(can.Message(arbitration_id=0x151, data=mode.ljust(8, b"\0"), is_extended_id=False))  # another host
+    assert wait_until(lambda: codec_mode(rig.driver.state()) == (mode[0], mode[1]))
+    rig.drain()
+    with pytest.raises(ArmNotReadyError, match=reported):
+        rig.driver.command(POSE)
+    assert motion_frames(rig.drain()) == []
+    rig.driver.enable()  # the remedy the message names
+    rig.driver.command(POSE)
+
+
+def codec_mode(state):
+    return state.status.value.ctrl_mode, state.status.value.mode_feed
+
+
+# ----------------------------------------------------------- no motion frame after an e-stop (issue 12.2)
+@settings(max_examples=6, deadline=None)
+@given(commanders=st.integers(2, 8), delay_s=st.floats(0.0, 0.02), seed=st.integers(0, 2**16))
+def test_no_motion_frame_leaves_the_driver_after_an_emergency_stop(commanders, delay_s, seed):
+    rng = random.Random(seed)
+    with make_rig(profile_light()) as rig:
+        rig.drain()
+        stopped_at: list[float] = []
+        late_successes: list[float] = []
+
+        def command_forever() -> None:
+            while not stopped_at or time.monotonic() < stopped_at[0] + 0.05:
+                started = time.monotonic()
+                try:
+                    rig.driver.command([rng.uniform(-0.1, 0.1)] + [0.0] * 5, 0.01)
+                except EmergencyStopError:
+                    continue
+                if stopped_at and started > stopped_at[0]:
+                    late_successes.append(started)
+
+        threads = [threading.Thread(target=command_forever) for _ in range(commanders)]
+        for t in threads:
+            t.start()
+        time.sleep(delay_s)
+        rig.driver.emergency_stop()
+        stopped_at.append(time.monotonic())
+        for t in threads:
+            t.join()
+        time.sleep(0.02)
+        frames = rig.drain()
+    ids = [m.arbitration_id for m in frames if m.arbitration_id in (0x150, 0x151, *codec.ID_JOINT_COMMAND, 0x159)]
+    estop = [i for i, m in enumerate(frames) if m.arbitration_id == 0x150 and m.data[0] == 0x01]
+    assert len(estop) == 1 and ids.count(0x150) == 1
+    motion = (0x151, *codec.ID_JOINT_COMMAND, 0x159)
+    after = [hex(m.arbitration_id) for m in frames[estop[0] :] if m.arbitration_id in motion]
+    assert after == [], f"motion frames after the e-stop: {after}"
+    assert late_successes == []  # no command that began after emergency_stop() returned reported success
+
+
+def profile_light() -> EmulatorConfig:
+    return EmulatorConfig(profile="light")
+
+
+# ------------------------------------------------------------------ mode changes confirmed (issue 12.3)
+def test_position_mode_after_high_follow_resets_old_firmware_first():
+    # An arm left in high-follow by a hardware-linked leader (firmware S-V1.8-2 ignores 0x151 until a reset).
+    with make_rig(EmulatorConfig(start_enabled=True)) as rig:
+        assert rig.arm.mit_mode == 0x00 and rig.arm.speed_percent == 50  # position mode really taken
+        assert any(m.arbitration_id == 0x150 and m.data[0] == 0x02 for m in rig.drain())
+        assert rig.arm.enabled == (True,) * 6
+        time.sleep(0.1)
+        walk_to(rig.driver, POSE)
+
+
+def test_refusing_to_leave_high_follow_is_one_clear_error():
+    with make_rig(EmulatorConfig(start_enabled=True), enable=False, high_follow_exit="refuse") as rig:
+        with pytest.raises(HighFollowError, match=r"may still be in high-follow \(0xAD\), and firmware S-V1.8-2"):
+            rig.driver.enable()
+        assert rig.arm.mit_mode == 0xAD and not any(m.arbitration_id == 0x150 for m in rig.drain())
+
+
+def test_new_firmware_leaves_high_follow_without_a_reset():
+    with make_rig(EmulatorConfig(start_enabled=True, firmware_text="S-V1.8-5")) as rig:
+        assert rig.arm.mit_mode == 0x00 and rig.arm.speed_percent == 50
+        assert not any(m.arbitration_id == 0x150 for m in rig.drain())
+
+
+def test_enable_refuses_when_feedback_does_not_confirm_the_mode():
+    with make_rig(EmulatorConfig(start_enabled=True), enable=False) as rig:
+        with rig.emulator.locked() as arm:
+            arm.move_mode = codec.MoveMode.P  # and high-follow, which this firmware keeps until a reset
+        rig.driver._may_be_high_follow = False  # pretend the driver could not know
+        with pytest.raises(EnableTimeoutError, match="reports control mode CAN and move mode P, not CAN command mode"):
+            rig.driver.enable()
