@@ -479,12 +479,10 @@ class PiperDriver:
         self._reset_sent_at = sent_at
         self._may_be_high_follow = False
 
-        def reset_seen(s: ArmState) -> bool:
-            return (
-                s.status is not None
-                and s.status.timestamp > sent_at
-                and s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP
-            )
+        def reset_seen(s: ArmState) -> bool:  # a fresh status without the e-stop, fresh driver bits
+            if s.status is None or any(f is None or f.timestamp <= sent_at for f in (s.status, *s.low_speed)):
+                return False
+            return s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP
 
         if not self.link.wait_for(reset_seen, self.config.enable_timeout_s):
             raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")

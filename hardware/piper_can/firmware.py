@@ -340,7 +340,7 @@ class PiperFirmware:
                 self._on_master_slave(command)
             case JointConfig():
                 replies = self._on_joint_config(command, frame)
-        return self._emit(replies)
+        return self._emit([f for f in replies if f.arbitration_id not in self.drop_ids])
 
     def _ignore(self, reason: str, frame: Frame) -> list[Frame]:
         self.ignored[reason] += 1

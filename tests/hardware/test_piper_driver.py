@@ -12,19 +12,22 @@ import can
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from piper_can import codec
+from piper_can import codec, recover_cli
 from piper_can.driver import DisconnectPolicy, DriverConfig, PiperDriver
 from piper_can.errors import (
     ArmNotReadyError,
+    CanBusError,
     EmergencyStopError,
     EnableTimeoutError,
+    Fault,
     FeedbackStaleError,
     FirmwareFaultError,
     HighFollowError,
+    PartialCommandError,
     PiperConnectionError,
 )
 from piper_can.firmware import EmulatorConfig
-from piper_can.safety import SDK_SOFT_LIMITS
+from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
 from piper_rig import make_rig, unique_virtual_channel, wait_until
 
 PERIOD = 0.005
@@ -411,3 +414,156 @@ def test_enable_refuses_when_feedback_does_not_confirm_the_mode():
         rig.driver._may_be_high_follow = False  # pretend the driver could not know
         with pytest.raises(EnableTimeoutError, match="reports control mode CAN and move mode P, not CAN command mode"):
             rig.driver.enable()
+
+
+# -------------------------------------------------------------------- recoverable faults (issue 12.4)
+def test_an_arm_just_past_a_limit_enables_and_commands_move_it_back():
+    with make_rig(EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0))) as rig:
+        assert rig.driver.state().faults() == (codec_fault("joint_2", "angle limit exceeded"),)
+        rig.driver.checked_state()  # logged, not raised: commands are what bring it back
+        sent = rig.driver.command(POSE)
+        assert sent.joints_rad[1] == pytest.approx(-0.02 + 0.2, abs=1e-5)  # toward (and into) the limits
+        walk_to(rig.driver, POSE)
+        assert rig.driver.state().faults() == ()
+
+
+def codec_fault(part: str, fault: str) -> Fault:
+    return Fault(part, fault)
+
+
+def test_clear_errors_brings_a_collided_arm_back_without_cutting_the_motors(rig, caplog):
+    with rig.emulator.locked() as arm:
+        arm.inject_fault("collision", 3)
+    assert wait_until(lambda: rig.driver.state().faults() != ())
+    with pytest.raises(FirmwareFaultError, match="arm: collision"):
+        rig.driver.command(POSE)
+    assert rig.driver.clear_errors() == ()
+    assert "clearing error codes" in caplog.text and "error codes cleared" in caplog.text
+    assert rig.arm.enabled == (True,) * 6
+    walk_to(rig.driver, POSE)
+
+
+@pytest.mark.parametrize("recovery", ["none", "reset"])
+def test_enable_brings_an_arm_e_stopped_by_someone_else_back_only_when_asked(recovery):
+    with make_rig(connect=False, recovery=recovery) as rig:
+        rig.monitor.send(can.Message(arbitration_id=0x150, data=bytes([1]).ljust(8, b"\0"), is_extended_id=False))
+        assert wait_until(lambda: rig.arm.estopped)
+        rig.driver.connect()
+        if recovery == "none":
+            with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
+                rig.driver.enable()
+        else:
+            rig.driver.enable()
+            assert not rig.arm.estopped and rig.arm.enabled == (True,) * 6
+            walk_to(rig.driver, POSE)
+
+
+HEALTHY = "faults: none; mode CAN/J; enabled joints 1-6 + gripper: 1111111"
+
+
+def test_piper_recover_cli_reports_and_resets(rig, capsys):
+    with rig.emulator.locked() as arm:
+        arm.inject_fault("comm_error", 4)
+    assert wait_until(lambda: rig.driver.state().faults() != ())
+    args = ["--interface=virtual", f"--channel={rig.channel}", "--feedback-timeout-s=0.1"]
+    assert recover_cli.main(args) == 0
+    assert "joint_4: communication error" in capsys.readouterr().out
+    assert recover_cli.main([*args, "--clear-errors"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "joint_4: communication error" in out[0] and out[1].endswith(HEALTHY)
+    with rig.emulator.locked() as arm:
+        arm.inject_fault("stall", 2)
+    assert recover_cli.main([*args, "--reset"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].endswith(HEALTHY)
+    assert rig.arm.enabled == (True,) * 6
+
+
+def test_piper_recover_cli_errors_are_one_line(capsys):
+    assert recover_cli.main(["--interface=virtual", f"--channel={unique_virtual_channel()}"]) == 1
+    assert capsys.readouterr().err.startswith("piper-recover: error: no PiPER heard on virtual:")
+
+
+# -------------------------------------------------------------------------- firmware limits (issue 12.5)
+def test_firmware_limits_narrow_the_soft_limits_and_a_mismatch_is_reported(caplog):
+    tight = math.radians(57.3)  # the firmware stores 0.1°
+    flash = JointLimits(((-tight, tight), *SDK_SOFT_LIMITS.joints_rad[1:]))
+    with make_rig(EmulatorConfig(limits=flash, limit_policy="reject"), max_step_rad=None) as rig:
+        assert rig.driver.limits.joints_rad[0] == (-tight, tight)
+        assert rig.driver.limits.joints_rad[1:] == SDK_SOFT_LIMITS.joints_rad[1:]
+        assert "joint_1 firmware limits [-1.0001, 1.0001] rad differ from the soft limits [-2.6180, 2.6180]" in (
+            caplog.text
+        )
+        assert rig.driver.command([2.0, 0.1, 0.0, 0.0, 0.0, 0.0]).joints_rad[0] == tight
+        assert wait_until(lambda: rig.arm.joints_rad[0] == pytest.approx(tight, abs=1e-5))
+        assert rig.arm.ignored["out of range"] == 0  # the firmware never had to reject a target
+
+
+def test_missing_firmware_limits_are_reported_and_the_soft_limits_kept(caplog):
+    with make_rig(connect=False, connect_timeout_s=0.3) as rig:
+        rig.arm.drop_ids = {0x473}
+        rig.driver.connect()
+        assert rig.driver.limits == SDK_SOFT_LIMITS
+        assert "sent no firmware limits (0x473) for joint_1, joint_2" in caplog.text
+
+
+# ---------------------------------------------------- watchdog re-arm, error frames, partial sends (issue 12.6)
+def test_the_watchdog_rearms_only_after_fresh_feedback(rig):
+    rig.arm.silent = True
+    assert wait_until(lambda: rig.driver.link.stale_error is not None)
+    with pytest.raises(FeedbackStaleError, match="cannot re-arm the watchdog .*: still no fresh 0x2A5, 0x2A6"):
+        rig.driver.rearm_watchdog()
+    with pytest.raises(FeedbackStaleError):
+        rig.driver.command(POSE)
+    rig.arm.silent = False
+    assert wait_until(lambda: _rearmed(rig.driver))
+    walk_to(rig.driver, POSE)
+
+
+def _rearmed(driver: PiperDriver) -> bool:
+    try:
+        driver.rearm_watchdog()
+    except FeedbackStaleError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("frame_id", [0x2A1, 0x2A8, 0x263])
+def test_status_gripper_and_driver_info_frames_are_watched_too(rig, frame_id):
+    rig.arm.drop_ids = {frame_id}
+    assert wait_until(lambda: rig.driver.link.stale_error is not None)
+    assert f"no feedback frame 0x{frame_id:X}" in str(rig.driver.link.stale_error)
+    with pytest.raises(FeedbackStaleError):
+        rig.driver.command(POSE)
+
+
+def test_bus_off_is_an_error_and_other_error_frames_are_counted(rig, caplog):
+    lost_arbitration = can.Message(arbitration_id=0x002, is_error_frame=True, data=bytes(8))
+    rig.monitor.send(lost_arbitration)
+    assert wait_until(lambda: rig.driver.link.error_frames["lost arbitration"] == 1)
+    rig.driver.command(POSE)  # a warning, not a stop
+    assert "CAN error frame: lost arbitration" in caplog.text
+    rig.monitor.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8)))
+    assert wait_until(lambda: rig.driver.link.bus_error is not None)
+    rig.drain()
+    with pytest.raises(CanBusError, match=f"CAN bus-off on virtual:{rig.channel}"):
+        rig.driver.command(POSE)
+    assert motion_frames(rig.drain()) == []
+    rig.driver.rearm_watchdog()  # the controller restarted and feedback flows again
+    rig.driver.command(POSE)
+
+
+def test_a_command_that_fails_half_way_is_reported_as_such(rig):
+    bus = rig.driver.link._bus
+    real_send, sent = bus.send, []
+
+    def flaky_send(msg, timeout=None):
+        if len(sent) == 2:
+            raise can.CanOperationError("Transmit buffer full")
+        sent.append(msg.arbitration_id)
+        real_send(msg, timeout)
+
+    bus.send = flaky_send
+    with pytest.raises(PartialCommandError) as err:
+        rig.driver.command(POSE, 0.01)
+    assert (err.value.sent, err.value.unsent) == ((0x151, 0x155), (0x156, 0x157, 0x159))
+    assert "command stopped after 2 of 5 frames (sent 0x151, 0x155; not sent 0x156, 0x157, 0x159)" in str(err.value)
