@@ -39,6 +39,9 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
     joint_limits: dict[str, tuple[float, float]] = field(default_factory=_default_limits)
     # A leader arm is linked to this follower in hardware (same bus): never send anything, only observe.
     hardware_linked_leader: bool = False
+    # A recorded dataset root or a trained policy directory: deploy in the motion mode (and speed)
+    # recorded there (meta/info.json "piper_motion"), instead of motion_mode / speed_percent.
+    motion_mode_from: str | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()

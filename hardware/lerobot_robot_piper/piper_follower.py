@@ -8,11 +8,13 @@ from functools import cached_property
 from lerobot.cameras import make_cameras_from_configs
 from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+from piper_can.codec import MIT_MODE_HIGH_FOLLOW
 from piper_can.driver import PiperDriver
 from piper_can.errors import ArmNotReadyError
 
 from .config_piper_follower import PiperFollowerConfig
 from .features import TORQUE_KEYS, VELOCITY_KEYS, from_action, motor_features, to_action
+from .motion_metadata import MotionMode, read_motion_mode
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +31,12 @@ class PiperFollower(Robot):
     def __init__(self, config: PiperFollowerConfig):
         super().__init__(config)
         self.config = config
+        if config.motion_mode_from is not None:
+            recorded = read_motion_mode(config.motion_mode_from)
+            if recorded is None:
+                raise ValueError(f"no PiPER motion mode recorded for {config.motion_mode_from} (meta/info.json)")
+            log.info("%s: deploying in the recorded motion mode %s", self, recorded)
+            config.motion_mode, config.speed_percent = recorded.motion_mode, recorded.speed_percent
         self.driver = PiperDriver(config.driver_config())
         self.cameras = make_cameras_from_configs(config.cameras)
 
@@ -45,6 +53,15 @@ class PiperFollower(Robot):
     @property
     def is_connected(self) -> bool:
         return self.driver.is_connected
+
+    @property
+    def motion_mode(self) -> MotionMode:
+        """The mode the arm moves in: the linked leader's (from its 0x151 frames), else ours."""
+        leader = self.driver.state().leader_mode if self.config.hardware_linked_leader else None
+        if leader is None:
+            return MotionMode(self.config.motion_mode, self.config.speed_percent)
+        high_follow = leader.value.mit_mode == MIT_MODE_HIGH_FOLLOW
+        return MotionMode("high_follow" if high_follow else "position", leader.value.speed_percent)
 
     @property
     def is_calibrated(self) -> bool:

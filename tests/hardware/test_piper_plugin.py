@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import json
 import math
 import subprocess
 import sys
@@ -20,10 +21,11 @@ from lerobot.teleoperators import make_teleoperator_from_config
 from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig
+from lerobot_robot_piper.motion_metadata import MotionMode, read_motion_mode, write_motion_mode
 from piper_can import codec
 from piper_can.driver import DriverSettings
 from piper_can.emulator import PiperEmulator
-from piper_can.errors import FeedbackStaleError, PiperConnectionError
+from piper_can.errors import FeedbackStaleError, FirmwareFaultError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
 from piper_rig import unique_virtual_channel, wait_until
 
@@ -289,3 +291,89 @@ def test_camera_frames_join_the_observation(arms, tmp_path):
     finally:
         robot.disconnect()
     assert not stub.is_connected
+
+
+def test_follower_connects_to_an_arm_just_past_a_limit_and_moves_it_back(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel, EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0)))
+    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot.connect()  # J2 at -0.02 rad (limit 0): logged, not refused
+    try:
+        assert robot.get_observation()["joint_2.pos"] == pytest.approx(-0.02, abs=1e-5)
+        action = dict(zip(KEYS, (0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0), strict=True))
+        assert wait_until(lambda: robot.send_action(action) and arm.firmware.joints_rad[1] > 0.05)
+        assert robot.driver.state().faults() == ()
+    finally:
+        robot.disconnect()
+
+
+def test_follower_recovery_setting_brings_an_e_stopped_arm_back_on_connect(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arm = arms(channel)
+    with arm.emulator.locked() as firmware:
+        firmware.handle(codec.encode(codec.EmergencyStop(codec.EStopAction.STOP)))
+    with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
+        PiperFollower(follower_config(channel, tmp_path)).connect()
+    robot = PiperFollower(follower_config(channel, tmp_path, recovery="reset"))
+    robot.connect()
+    try:
+        assert not arm.firmware.estopped and arm.firmware.enabled == (True,) * 6
+    finally:
+        robot.disconnect()
+
+
+def test_velocity_and_torque_observations_are_optional(arms, tmp_path):
+    assert "joint_1.vel" not in PiperFollower(follower_config("x", tmp_path)).observation_features
+    channel = unique_virtual_channel()
+    arm = arms(channel)
+    robot = PiperFollower(follower_config(channel, tmp_path, use_velocity_and_torque=True))
+    extra = [f"joint_{j}.{kind}" for kind in ("vel", "torque") for j in range(1, 7)]
+    assert list(robot.observation_features) == [*KEYS, *extra]
+    robot.connect()
+    try:
+        action = dict(zip(KEYS, (0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), strict=True))
+        assert wait_until(lambda: robot.send_action(action) and robot.get_observation()["joint_1.vel"] > 0.5)
+        obs = robot.get_observation()
+        assert list(obs) == [*KEYS, *extra]
+        # The emulator draws 0.2 A + 0.5 A per rad/s; J4..J6 have the smaller torque constant.
+        assert obs["joint_4.torque"] == pytest.approx(0.2 * 0.95844, abs=1e-3)
+        assert wait_until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.2, abs=1e-4))
+    finally:
+        robot.disconnect()
+
+
+def test_the_recorded_motion_mode_round_trips_and_deploys_by_request(arms, tmp_path):
+    root = tmp_path / "dataset"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text(json.dumps({"robot_type": "piper_follower"}))
+    assert read_motion_mode(root) is None
+    write_motion_mode(root, MotionMode("high_follow", 100))
+    policy = tmp_path / "pretrained_model"
+    policy.mkdir()
+    (policy / "train_config.json").write_text(json.dumps({"dataset": {"root": str(root)}}))
+    assert read_motion_mode(root) == read_motion_mode(policy) == MotionMode("high_follow", 100)
+    assert json.loads((root / "meta" / "info.json").read_text())["robot_type"] == "piper_follower"
+
+    channel = unique_virtual_channel()
+    arm = arms(channel)
+    robot = PiperFollower(follower_config(channel, tmp_path, motion_mode_from=str(policy)))
+    assert robot.motion_mode == MotionMode("high_follow", 100)
+    robot.connect()
+    try:
+        assert arm.firmware.mit_mode == 0xAD and arm.firmware.speed_percent == 100
+    finally:
+        robot.disconnect()
+    with pytest.raises(ValueError, match="no PiPER motion mode recorded for"):
+        PiperFollower(follower_config(channel, tmp_path, motion_mode_from=str(tmp_path)))
+
+
+def test_a_hardware_linked_follower_reports_the_leaders_motion_mode(arms, tmp_path):
+    channel = unique_virtual_channel()
+    arms(channel, EmulatorConfig(start_enabled=True))
+    arms(channel, EmulatorConfig(role="leader"))
+    robot = PiperFollower(follower_config(channel, tmp_path, hardware_linked_leader=True))
+    robot.connect()
+    try:
+        assert wait_until(lambda: robot.motion_mode == MotionMode("high_follow", 100))
+    finally:
+        robot.disconnect()
