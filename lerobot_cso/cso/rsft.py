@@ -22,6 +22,7 @@ encoders are frozen and ``<output_dir>/pretrained_model`` is saved with ``freeze
 import json
 import math
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -328,8 +329,11 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     return out
 
 
-def run_rsft(cfg: RSFTConfig) -> dict[str, Any]:
-    """Collect (resumable), write the buffer, optionally push it, fine-tune; returns the collection report."""
+def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine) -> dict[str, Any]:
+    """Collect (resumable), write the buffer, optionally push it, fine-tune; returns the collection report.
+
+    ``make_engine(policy, preprocessor, postprocessor, num_envs=..., max_steps=...)`` builds the rollout engine.
+    """
     tasks = cfg.validate()
     if (cfg.output_dir / "pretrained_model" / "config.json").is_file():
         print(f"{cfg.output_dir / 'pretrained_model'} exists: R-SFT already complete")
@@ -338,7 +342,7 @@ def run_rsft(cfg: RSFTConfig) -> dict[str, Any]:
     restore_interrupted_replace(cfg.output_dir / "buffer")
     if not (cfg.output_dir / "buffer" / "meta" / "info.json").is_file():
         policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
-        with RolloutEngine(policy, pre, post, num_envs=cfg.num_envs, max_steps=cfg.max_steps) as engine:
+        with make_engine(policy, pre, post, num_envs=cfg.num_envs, max_steps=cfg.max_steps) as engine:
             collect(cfg, tasks, engine, journal)
         write_buffer(cfg, tasks, journal, policy.config.n_tokens)
     report = collection_report(journal, tasks)
