@@ -232,9 +232,9 @@ class PiperDriver:
         if listen_only:
             return
         try:
-            queries = [LimitQuery(m, LIMIT_QUERY_ANGLE_SPEED) for m in range(1, NUM_JOINTS + 1)]
-            self.link.send(encode(FirmwareQuery()), *(encode(q) for q in queries if self.config.read_firmware_limits))
+            self.link.send(encode(FirmwareQuery()))
             if self.config.read_firmware_limits:
+                self.link.send(*(encode(LimitQuery(m, LIMIT_QUERY_ANGLE_SPEED)) for m in range(1, NUM_JOINTS + 1)))
                 self._apply_firmware_limits()
             status = self.link.state().status
             # Someone put the arm in CAN mode before us: it may be in high-follow (not in any feedback).

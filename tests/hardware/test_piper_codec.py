@@ -69,6 +69,8 @@ def test_gripper_ctrl_example_is_byte_exact():
         (FirmwareQuery(), "4af: 01 00 00 00 00 00 00 00"),
         (LimitQuery(3, 0x01), "472: 03 01 00 00 00 00 00 00"),
         (GripperCommand(0.0, 1.0, 0x03, set_zero=True), "159: 00 00 00 00 03 e8 03 ae"),
+        (codec.JointConfig(7, clear_error=True), "475: 07 00 00 7f ff ae 00 00"),  # JointConfig(7,0,0,0x7FFF,0xAE)
+        (codec.JointConfig(2, accel_valid=True, max_accel_raw=500), "475: 02 00 ae 01 f4 00 00 00"),
     ],
 )
 def test_command_examples_are_byte_exact(message, expected):
@@ -251,8 +253,18 @@ def test_every_message_type_has_an_encoder_and_a_decoder():
         (codec.MotorAccelLimit(4, 5.0), decode_feedback),
         (codec.FirmwareChunk(b"S-V1.8-2"), decode_feedback),
         (LowSpeedInfo(6, 24.0, 30, 28, 0x40, 0.0), decode_feedback),
+        (codec.InstructionResponse(0x75, True), decode_feedback),
     ]
     for message, decoder in samples:
         frame = encode(message)
         assert len(frame.data) == 8
         assert decoder(frame.arbitration_id, frame.data) == message
+
+
+def test_joint_config_flags_must_be_0xae_or_zero_and_versions_parse():
+    with pytest.raises(CodecError, match="clear-error flag must be 0x00 or 0xAE"):
+        decode_command(0x475, bytes([7, 0, 0, 0x7F, 0xFF, 0x01, 0, 0]))
+    with pytest.raises(CodecError, match="joint must be 1..7"):
+        encode(codec.JointConfig(0))
+    assert codec.firmware_release("S-V1.8-5") == (1, 8, 5) and codec.firmware_release("S-V1.8-2") < (1, 8, 5)
+    assert codec.firmware_release(None) is None and codec.firmware_release("H-V1.2-1") is None

@@ -11,7 +11,7 @@ import time
 
 import can
 import pytest
-from piper_can.codec import JointCommand, decode_command
+from piper_can.codec import JointCommand, JointConfig, decode_command, encode
 from piper_can.emulator import PiperEmulator
 from piper_rig import unique_virtual_channel, wait_until
 
@@ -86,3 +86,16 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     sdk.DisableArm(7)
     assert wait_until(lambda: arm.firmware.enabled == (False,) * 6)
     assert wait_until(lambda: sdk.GetArmEnableStatus() == [False] * 6)
+
+
+def test_the_vendors_clear_error_frame_is_ours_and_clears_the_emulated_fault(sdk_and_arm):
+    sdk, arm, monitor = sdk_and_arm
+    with arm.locked() as firmware:
+        firmware.inject_fault("collision", 2)
+    sdk.JointConfig(7, 0, 0, 0x7FFF, 0xAE)
+    assert wait_until(lambda: arm.firmware.arm_status == 0 and arm.firmware.ignored["invalid value"] == 0)
+    time.sleep(0.05)
+    frames = list(iter(lambda: monitor.recv(timeout=0), None))
+    sent = [bytes(m.data) for m in frames if m.arbitration_id == 0x475]
+    assert sent == [encode(JointConfig(7, clear_error=True)).data]
+    assert any(m.arbitration_id == 0x476 and m.data[0] == 0x75 for m in frames)
