@@ -26,6 +26,7 @@ from lerobot_cso.envs import seeds
 from lerobot_cso.envs.constants import HORIZON
 from lerobot_cso.envs.tasks import all_tasks, resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
+from lerobot_cso.rollout.pool import VECTORIZATIONS
 
 
 @dataclass
@@ -41,7 +42,8 @@ class EvalConfig(PolicyPathConfig):
     top_k: int | None = 5
     greedy: bool = False
     num_envs: int = 16
-    vectorization: str = "sync"
+    # processes (envs split over one worker process per core) | sync (this process) | async (a process per env)
+    vectorization: str = "processes"
     max_steps: int = HORIZON
     output_dir: Path | None = None
 
@@ -72,8 +74,8 @@ class EvalConfig(PolicyPathConfig):
             raise UsageError(f"episodes_per_task must be in [1, {seeds.EVAL_BLOCK}], got {self.episodes_per_task}")
         if self.num_envs < 1:
             raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
-        if self.vectorization not in ("sync", "async"):
-            raise UsageError(f"vectorization must be 'sync' or 'async', got '{self.vectorization}'")
+        if self.vectorization not in VECTORIZATIONS:
+            raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if not 1 <= self.max_steps <= HORIZON:
             raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         if self.temperature <= 0 or (self.top_k is not None and self.top_k < 1):

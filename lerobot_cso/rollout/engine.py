@@ -107,39 +107,39 @@ class RolloutResult:
 
 
 class _PolicyController:
-    """Pool controller: batched skill sampling for every slot whose action queue ran dry."""
+    """Pool controller: one batched skill decision for every active slot, executed as an action chunk.
+
+    The pool starts episodes only on multiples of ``n_action_steps``, so every call is a decision step of
+    every running episode.
+    """
 
     def __init__(self, engine: RolloutEngine, sampling: Sampling, generator: torch.Generator) -> None:
         self.engine = engine
         self.sampling = sampling
         self.generator = generator
         n = engine.pool.num_envs
-        self.queues: list[list[np.ndarray]] = [[] for _ in range(n)]
         self.steps = np.zeros(n, dtype=np.int64)
         self.descriptions: list[str] = [""] * n
         self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(n)]
         self.policy_seconds = 0.0
 
     def start(self, slot: int, job: Job) -> None:
-        self.queues[slot] = []
         self.steps[slot] = 0
         self.descriptions[slot] = task_description(job.task)
         self.decisions[slot] = []
 
     def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
-        rows = [slot for slot in np.flatnonzero(active) if not self.queues[slot]]
-        if rows:
-            started = time.perf_counter()
-            decided = self.engine.decide(obs, rows, self.descriptions, self.sampling, self.generator)
-            contexts, tokens, logprobs, chunks = decided
-            for i, slot in enumerate(rows):
-                self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
-                self.queues[slot] = list(chunks[i])
-            self.policy_seconds += time.perf_counter() - started
-        actions = np.zeros((len(active), ACTION_DIM), dtype=np.float32)
-        for slot in np.flatnonzero(active):
-            actions[slot] = self.queues[slot].pop(0)
-            self.steps[slot] += 1
+        started = time.perf_counter()
+        rows = np.flatnonzero(active).tolist()
+        contexts, tokens, logprobs, chunks = self.engine.decide(
+            obs, rows, self.descriptions, self.sampling, self.generator
+        )
+        actions = np.zeros((len(active), chunks.shape[1], ACTION_DIM), dtype=np.float32)
+        for i, slot in enumerate(rows):
+            self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
+            actions[slot] = chunks[i]
+            self.steps[slot] += chunks.shape[1]
+        self.policy_seconds += time.perf_counter() - started
         return actions
 
     def finish(self, slot: int) -> dict[str, Tensor]:
@@ -183,7 +183,8 @@ class RolloutEngine:
         num_envs: int = 16,
         cameras: Sequence[str] | None = None,
         max_steps: int = HORIZON,
-        vectorization: Vectorization = "sync",
+        vectorization: Vectorization = "processes",
+        workers: int | None = None,
     ) -> None:
         self.policy = policy
         self.preprocessor = preprocessor
@@ -191,7 +192,7 @@ class RolloutEngine:
         if cameras is None:
             prefix = f"{OBS_IMAGES}."
             cameras = [key.removeprefix(prefix) for key in policy.config.input_features if key.startswith(prefix)]
-        self.pool = EnvPool(num_envs, cameras, max_steps=max_steps, vectorization=vectorization)
+        self.pool = EnvPool(num_envs, cameras, max_steps=max_steps, vectorization=vectorization, workers=workers)
 
     @torch.no_grad()
     def decide(

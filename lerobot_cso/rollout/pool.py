@@ -9,12 +9,14 @@ simulation (in a ``SyncVectorEnv`` it costs nothing at all), so the alignment is
 rollouts. Jobs are handed out with task affinity (a slot stays on its task while that task has jobs left),
 so that each env builds few MuJoCo models.
 
-``vectorization="sync"`` (default) steps all envs in this process; ``"async"`` gives each env a worker
-process (forkserver), which pays off with cameras or on machines with more cores than this one's two.
+``vectorization="processes"`` (default) splits the envs into ``workers`` processes (one per core by default),
+each stepping its shard in a ``SyncVectorEnv`` (:class:`~lerobot_cso.rollout.sharded.ShardedVectorEnv`);
+``"sync"`` steps all envs in this process; ``"async"`` is gymnasium's ``AsyncVectorEnv``, one process per env.
 """
 
 from __future__ import annotations
 
+import os
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -29,8 +31,15 @@ from tqdm import tqdm
 from lerobot_cso.envs.constants import HORIZON, IMAGE_SIZE
 from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, check_cameras
 from lerobot_cso.envs.tasks import check_task
+from lerobot_cso.rollout.sharded import ShardedVectorEnv, last_step, step_chunk
 
-Vectorization = Literal["sync", "async"]
+Vectorization = Literal["processes", "sync", "async"]
+VECTORIZATIONS: tuple[str, ...] = ("processes", "sync", "async")
+
+
+def default_workers() -> int:
+    """Worker processes of the ``processes`` vectorization: one per core this process may run on."""
+    return len(os.sched_getaffinity(0))
 
 
 @dataclass(frozen=True)
@@ -62,7 +71,8 @@ class Controller(Protocol):
         """A new episode begins in ``slot``."""
 
     def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
-        """Actions ``(num_envs, 4)`` for the batched observation; rows where ``active`` is False are ignored."""
+        """Actions ``(num_envs, 4)``, or a chunk ``(num_envs, L, 4)`` executed open-loop, for the batched
+        observation; rows where ``active`` is False are ignored."""
 
     def finish(self, slot: int) -> Any:
         """The episode in ``slot`` ended; return the controller's record of it (or None)."""
@@ -77,20 +87,26 @@ class _Recorder:
         self.actions: list[np.ndarray] = []
         self.images: dict[str, list[np.ndarray]] = {cam: [] for cam in cameras}
 
-    def add(self, obs: dict[str, Any], slot: int, action: np.ndarray) -> None:
-        self.states.append(obs["agent_pos"][slot].copy())
-        self.actions.append(np.clip(action, -1.0, 1.0).astype(np.float32))
+    def add(self, before: dict[str, Any], after: dict[str, Any], slot: int, actions: np.ndarray) -> None:
+        """Record ``actions`` (n, A) executed from observation ``before``; ``after`` holds the observations
+        (L, num_envs, ...) after each step of the chunk, so step j's input is ``after[j - 1]``."""
+        n = len(actions)
+        self.states.append(before["agent_pos"][slot][None])
+        self.states.append(after["agent_pos"][: n - 1, slot])
+        self.actions.append(np.clip(actions, -1.0, 1.0).astype(np.float32))
         for cam in self.cameras:
-            self.images[cam].append(obs["pixels"][cam][slot].copy())
+            self.images[cam].append(before["pixels"][cam][slot][None])
+            self.images[cam].append(after["pixels"][cam][: n - 1, slot])
 
     def trace(self, job: Job, success: bool, record: Any) -> Trace:
+        actions = np.concatenate(self.actions)
         return Trace(
             job=job,
             success=success,
-            length=len(self.actions),
-            states=np.stack(self.states),
-            actions=np.stack(self.actions),
-            images={cam: np.stack(frames) for cam, frames in self.images.items()},
+            length=len(actions),
+            states=np.concatenate(self.states),
+            actions=actions,
+            images={cam: np.concatenate(frames) for cam, frames in self.images.items()},
             record=record,
         )
 
@@ -134,12 +150,13 @@ class EnvPool:
         cameras: Sequence[str] = (),
         image_size: int = IMAGE_SIZE,
         max_steps: int = HORIZON,
-        vectorization: Vectorization = "sync",
+        vectorization: Vectorization = "processes",
+        workers: int | None = None,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        if vectorization not in ("sync", "async"):
-            raise ValueError(f"vectorization must be 'sync' or 'async', got '{vectorization}'")
+        if vectorization not in VECTORIZATIONS:
+            raise ValueError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{vectorization}'")
         check_cameras(cameras)
         self.num_envs = num_envs
         self.cameras = tuple(cameras)
@@ -147,10 +164,11 @@ class EnvPool:
         # The task given here is only the initial one; every job resets its slot onto its own task.
         make = partial(CSOMetaWorldEnv, "reach-v3", self.cameras, image_size, max_steps)
         fns: list[Callable[[], gym.Env]] = [make] * num_envs
-        if vectorization == "async" and num_envs > 1:
-            self.vec: gym.vector.VectorEnv = gym.vector.AsyncVectorEnv(
-                fns, context="forkserver", autoreset_mode=AutoresetMode.DISABLED
-            )
+        workers = default_workers() if workers is None else workers
+        if vectorization == "processes" and num_envs > 1 and workers > 1:
+            self.vec: gym.vector.VectorEnv = ShardedVectorEnv(fns, workers=workers)
+        elif vectorization == "async" and num_envs > 1:
+            self.vec = gym.vector.AsyncVectorEnv(fns, context="forkserver", autoreset_mode=AutoresetMode.DISABLED)
         else:
             self.vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)
         self.vec.reset(options={"park": True})  # every slot starts parked; jobs reset slots individually
@@ -208,16 +226,22 @@ class EnvPool:
                 parked[to_park] = True
             active = np.array([r is not None for r in running])
             actions = controller.act(obs, active)
+            chunk = actions[:, None] if actions.ndim == 2 else actions
+            after, terminated, truncated = step_chunk(self.vec, chunk.astype(np.float32), active)
+            step += chunk.shape[1]
+            ended = terminated | truncated
             for slot in np.flatnonzero(active):
-                recorders[slot].add(obs, slot, actions[slot])
-            obs, _, terminated, truncated, _ = self.vec.step(actions.astype(np.float32))
-            step += 1
-            for slot in np.flatnonzero(active & (terminated | truncated)):
-                index, job = running[slot]
-                trace = recorders[slot].trace(job, bool(terminated[slot]), controller.finish(slot))
-                running[slot] = recorders[slot] = None
-                bar.update()
-                yield index, trace
+                finished = bool(ended[:, slot].any())
+                end = int(np.argmax(ended[:, slot])) + 1 if finished else chunk.shape[1]
+                recorders[slot].add(obs, after, slot, chunk[slot, :end])
+                if finished:
+                    index, job = running[slot]
+                    trace = recorders[slot].trace(job, bool(terminated[:, slot].any()), controller.finish(slot))
+                    running[slot] = recorders[slot] = None
+                    parked[slot] = True  # step_chunk parked it at its end
+                    bar.update()
+                    yield index, trace
+            obs = last_step(after)
         bar.close()
 
     def close(self) -> None:
