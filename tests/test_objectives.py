@@ -101,6 +101,7 @@ def test_token_granularity():
     expected = torch.tensor([[[0.0, -1.0], [-0.5, -1.25]], [[0.0, 0.55], [0.0, 0.0]]]) / 6
     torch.testing.assert_close(grad, expected.double())
     assert stats.clip_fraction == pytest.approx(2 / 6)
+    assert (stats.clip_low_fraction, stats.clip_high_fraction) == pytest.approx((1 / 6, 1 / 6))  # 0.6 | 1.5
     assert stats.ratio_mean == pytest.approx((1.5 + 1 + 0.5 + 1.25 + 0.6 + 1.1) / 6)
     assert stats.approx_kl == pytest.approx(k3([1.5, 1.0, 0.5, 1.25, 0.6, 1.1]))
 
@@ -115,6 +116,7 @@ def test_ript_granularity():
     expected = torch.tensor([[[0.0, -1.0], [-0.5, 0.0]], [[0.0, 0.55], [0.0, 0.0]]]) / 6
     torch.testing.assert_close(grad, expected.double())
     assert stats.clip_fraction == pytest.approx(3 / 6)
+    assert (stats.clip_low_fraction, stats.clip_high_fraction) == pytest.approx((1 / 6, 2 / 6))  # 0.6 | 1.5, 1.25
 
 
 # ---- skill (SPO, Eq. 9): ratio = product of the 8 token ratios of one decision -----------------------------

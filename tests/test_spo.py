@@ -108,6 +108,19 @@ def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_p
     history = spo.run_spo(cfg, make_engine=engine_factory(engines))
     # With lr 0, π = π_old throughout: every ratio is exactly 1, nothing is clipped and the KL is 0.
     assert all(h["clip_fraction"] == 0.0 and abs(h["approx_kl"]) < 1e-6 for h in history)
+    assert all(h["ratio_mean"] == pytest.approx(1.0) and h["updates"] == 1 for h in history)  # 1 epoch, 1 minibatch
+
+
+def test_target_kl_stops_an_iterations_updates_early(rsft_policy, tmp_path):
+    engines: list[ScriptedEngine] = []
+    full = spo.run_spo(make_cfg(rsft_policy, tmp_path / "full", lr=1e-2), make_engine=engine_factory(engines))
+    assert all(h["updates"] == 4 for h in full)  # 2 epochs x 2 minibatches
+    stopped = spo.run_spo(
+        make_cfg(rsft_policy, tmp_path / "stopped", lr=1e-2, target_kl=1e-9), make_engine=engine_factory(engines)
+    )
+    # The first minibatch has ratio 1 (KL 0); the second one, after a step at lr 1e-2, exceeds any tiny target.
+    assert all(h["updates"] == 2 for h in stopped)
+    assert all(h["clip_low_fraction"] + h["clip_high_fraction"] == pytest.approx(h["clip_fraction"]) for h in full)
 
 
 def test_resume_continues_after_the_last_finished_iteration(rsft_policy, tmp_path):

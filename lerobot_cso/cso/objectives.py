@@ -99,6 +99,8 @@ class SurrogateStats:
     """
 
     clip_fraction: float
+    clip_low_fraction: float
+    clip_high_fraction: float
     approx_kl: float
     ratio_mean: float
 
@@ -166,9 +168,12 @@ def clipped_surrogate_loss(
 
     with torch.no_grad():
         was_clipped = (clipped < unclipped) & unit_mask
+        below = was_clipped & (ratio < lower)
         k3 = torch.where(token_mask, torch.expm1(token_log_ratio) - token_log_ratio, 0.0)
         stats = SurrogateStats(
             clip_fraction=(was_clipped.sum() / n_units).item(),
+            clip_low_fraction=(below.sum() / n_units).item(),
+            clip_high_fraction=((was_clipped & ~below).sum() / n_units).item(),
             approx_kl=(k3.sum() / token_mask.sum().clamp(min=1)).item(),
             ratio_mean=(torch.where(unit_mask, ratio, 0.0).sum() / n_units).item(),
         )

@@ -60,11 +60,16 @@ LOG_COLUMNS = (
     "success_rate",
     "rejection_rate",
     "clip_fraction",
+    "clip_low_fraction",
+    "clip_high_fraction",
+    "ratio_mean",
     "approx_kl",
     "loss",
     "grad_norm",
+    "updates",
     "seconds",
 )
+UPDATE_STATS = ("loss", "grad_norm", "clip_fraction", "clip_low_fraction", "clip_high_fraction", "ratio_mean", "approx_kl")
 
 
 @dataclass
@@ -89,6 +94,8 @@ class SPOConfig(PolicyPathConfig):
     temperature: float = 1.0
     top_k: int | None = 5
     ratio_top_k: int | None = None
+    # Stop an iteration's epochs early once a minibatch's approximate KL exceeds this (CleanRL); null: never.
+    target_kl: float | None = None
     # Give up on an iteration's collection after drawing this many times B groups (all rejected).
     max_draw_factor: int = 4
     num_envs: int = 16
@@ -112,6 +119,8 @@ class SPOConfig(PolicyPathConfig):
             raise UsageError(f"group_size must be >= 2 for group-relative advantages, got {self.group_size}")
         if not 1 <= self.max_steps <= HORIZON:
             raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
+        if self.target_kl is not None and self.target_kl <= 0:
+            raise UsageError(f"target_kl must be > 0 or null, got {self.target_kl}")
         low, high = self.clip()
         if not 0 < low <= 1 <= high:
             raise UsageError(f"the clip range must satisfy 0 < clip_low <= 1 <= clip_high, got [{low}, {high}]")
@@ -200,6 +209,8 @@ def update(
     rows: list[dict[str, float]] = []
     n = len(batch.tokens)
     for _ in range(cfg.epochs):
+        if rows and cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
+            break
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
             new = padded_logprobs(
                 policy, batch.contexts[idx], batch.tokens[idx], batch.mask[idx], cfg.temperature, cfg.ratio_top_k
@@ -212,7 +223,9 @@ def update(
             grad_norm = torch.nn.utils.clip_grad_norm_(policy.prior.parameters(), cfg.grad_clip_norm)
             optimizer.step()
             rows.append({"loss": loss.item(), "grad_norm": float(grad_norm), **asdict(stats)})
-    return {key: float(np.mean([r[key] for r in rows])) for key in ("loss", "grad_norm", "clip_fraction", "approx_kl")}
+            if cfg.target_kl is not None and stats.approx_kl > cfg.target_kl:
+                break
+    return {key: float(np.mean([r[key] for r in rows])) for key in UPDATE_STATS} | {"updates": len(rows)}
 
 
 def plot_history(history: list[dict[str, float]], path: Path) -> None:
@@ -284,7 +297,7 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutE
             if groups:
                 stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
             else:  # every group was uniform: nothing to learn from this iteration
-                stats |= {"loss": 0.0, "grad_norm": 0.0, "clip_fraction": 0.0, "approx_kl": 0.0}
+                stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
             history.append(row)
             print(format_row(row), flush=True)
