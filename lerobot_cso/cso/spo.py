@@ -69,7 +69,15 @@ LOG_COLUMNS = (
     "updates",
     "seconds",
 )
-UPDATE_STATS = ("loss", "grad_norm", "clip_fraction", "clip_low_fraction", "clip_high_fraction", "ratio_mean", "approx_kl")
+UPDATE_STATS = (
+    "loss",
+    "grad_norm",
+    "clip_fraction",
+    "clip_low_fraction",
+    "clip_high_fraction",
+    "ratio_mean",
+    "approx_kl",
+)
 
 
 @dataclass
