@@ -94,16 +94,29 @@ def _stats(values: list[float]) -> tuple[float, float | None]:
     return mean, (float(np.std(values, ddof=1)) if len(values) > 1 else None)
 
 
-def summarize(success: dict[str, dict[int, float]]) -> dict[str, Any]:
-    """Per task and overall (mean over tasks, per seed): success rates per seed, mean and std over seeds."""
+def standard_error(rate: float, episodes: int) -> float:
+    """Binomial standard error of a success rate measured on ``episodes`` independent episodes."""
+    return float(np.sqrt(rate * (1 - rate) / episodes))
+
+
+def summarize(success: dict[str, dict[int, float]], episodes_per_task: int | None = None) -> dict[str, Any]:
+    """Per task and overall (mean over tasks, per seed): success rates per seed, mean and std over seeds.
+
+    With ``episodes_per_task`` (per seed), each row also has ``se``, the binomial standard error of its mean
+    over all its episodes; the overall one is sqrt(sum of the tasks' se²) / number of tasks.
+    """
     seed_list = sorted(next(iter(success.values())))
     rows = {}
     for task, per_seed in success.items():
         mean, std = _stats([per_seed[s] for s in seed_list])
         rows[task] = {"per_seed": {str(s): per_seed[s] for s in seed_list}, "mean": mean, "std": std}
+        if episodes_per_task is not None:
+            rows[task]["se"] = standard_error(mean, episodes_per_task * len(seed_list))
     overall_per_seed = {s: float(np.mean([success[t][s] for t in success])) for s in seed_list}
     mean, std = _stats(list(overall_per_seed.values()))
     rows["overall"] = {"per_seed": {str(s): v for s, v in overall_per_seed.items()}, "mean": mean, "std": std}
+    if episodes_per_task is not None:
+        rows["overall"]["se"] = float(np.sqrt(sum(rows[t]["se"] ** 2 for t in success)) / len(success))
     return rows
 
 
@@ -185,7 +198,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
             throughput.append(
                 {"seed": s, "env_steps_per_s": result.env_steps_per_s, "decisions_per_s": result.decisions_per_s}
             )
-    rows = summarize(success)
+    rows = summarize(success, cfg.episodes_per_task)
     record = {
         "policy_path": str(path),
         "tasks": tasks,

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import matplotlib
+import numpy as np
 import torch
 import yaml
 from lerobot.configs import parser
@@ -354,6 +356,13 @@ class Pipeline:
             "tasks": self.tasks,
             "output_dir": str(self.out),
             "success_rate": rates,
+            "cso_minus_il": dict(
+                zip(
+                    ("mean", "ci95_low", "ci95_high"),
+                    gain_interval(rates["il"]["overall"], rates["cso"]["overall"]),
+                    strict=True,
+                )
+            ),
             "checkpoints": {"il": str(il), "rsft": str(rsft), "cso": str(cso)},
             "eval": {"episodes_per_task": self.cfg.eval.episodes_per_task, "seeds": self.cfg.eval.seeds},
             "stage_seconds": self.seconds,
@@ -361,15 +370,19 @@ class Pipeline:
         }
         write_atomic(self.out / "results.json", json.dumps(results, indent=2).encode())
         seeds = len(self.cfg.eval.eval_seeds())
+        noise = ", ".join(f"{EVALUATED[n]} ± {100 * rates[n]['overall']['se']:.1f}" for n in EVALUATED)
         caption = (
-            f"Success rate (%) over {self.cfg.eval.episodes_per_task} evaluation episodes per task"
-            f" × {seeds} seed(s){' (mean ± std over seeds)' if seeds > 1 else ''}."
+            f"Success rate (%) over {self.cfg.eval.episodes_per_task} evaluation episodes per task × {seeds} "
+            f"evaluation seed(s), on held-out initial states; ± is one binomial standard error. Noise of the mean "
+            f"over tasks (1 s.e., points): {noise}."
         )
+        history = [json.loads(line) for line in (self.out / "spo" / "log.jsonl").read_text().splitlines()]
+        plot_results(self.out / "results.png", rates, history)
         timing = ", ".join(f"{k} {v:.0f} s" for k, v in self.seconds.items())
         write_atomic(self.out / "results.md", f"{table}\n\n{caption}\n\nStage wall times: {timing}.\n".encode())
         print(
             f"\n{table}\n\n{caption}\n[pipeline] done in {time.perf_counter() - started:.0f} s; "
-            f"wrote {self.out / 'results.md'} and results.json",
+            f"wrote {self.out / 'results.md'}, results.json and results.png",
             flush=True,
         )
         return results
@@ -393,19 +406,54 @@ def _lerobot_train(args: list[str], threads: int | None) -> None:
 
 
 def _cell(row: dict[str, Any]) -> str:
-    spread = "" if row.get("std") is None else f" ± {100 * row['std']:.1f}"
-    return f"{100 * row['mean']:.1f}{spread}"
+    return f"{100 * row['mean']:.1f} ± {100 * row['se']:.1f}"
+
+
+def gain_interval(il: dict[str, Any], cso: dict[str, Any]) -> tuple[float, float, float]:
+    """CSO − IL and its 95 % confidence interval (normal approximation; the two evaluations are treated as
+    independent, which is conservative since they share their initial states)."""
+    gain = cso["mean"] - il["mean"]
+    half = 1.96 * float(np.hypot(il["se"], cso["se"]))
+    return gain, gain - half, gain + half
 
 
 def results_table(tasks: list[str], rates: dict[str, dict[str, Any]]) -> str:
-    """Markdown table: per task and the mean over tasks, the success rate of IL, R-SFT and CSO, and CSO − IL."""
-    lines = ["| task | " + " | ".join(EVALUATED.values()) + " | CSO − IL |", "|---|---:|---:|---:|---:|"]
+    """Markdown table: per task and the mean over tasks, the success rate ± its standard error of IL, R-SFT
+    and CSO, and CSO − IL with its 95 % confidence interval."""
+    lines = ["| task | " + " | ".join(EVALUATED.values()) + " | CSO − IL [95 % CI] |", "|---|---:|---:|---:|---:|"]
     for task in [*tasks, "overall"]:
         cells = [_cell(rates[name][task]) for name in EVALUATED]
-        gain = 100 * (rates["cso"][task]["mean"] - rates["il"][task]["mean"])
+        gain, low, high = (100 * v for v in gain_interval(rates["il"][task], rates["cso"][task]))
         name = "**mean**" if task == "overall" else task
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain:+.1f} |")
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {gain:+.1f} [{low:+.1f}, {high:+.1f}] |")
     return "\n".join(lines)
+
+
+def plot_results(path: Path, rates: dict[str, dict[str, Any]], spo_history: list[dict[str, Any]]) -> None:
+    """PNG: mean success rate per stage (± 1 s.e.), and SPO's per-iteration group success and clip fraction."""
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    names = list(EVALUATED)
+    means = [100 * rates[n]["overall"]["mean"] for n in names]
+    errors = [100 * rates[n]["overall"]["se"] for n in names]
+    left.bar([EVALUATED[n] for n in names], means, yerr=errors, capsize=4, color=["tab:gray", "tab:blue", "tab:green"])
+    left.set_ylabel("mean success rate (%)")
+    left.set_ylim(0, 105)
+    left.set_title("evaluation, mean over tasks (± 1 s.e.)")
+    iterations = [h["iteration"] for h in spo_history]
+    right.plot(iterations, [100 * h["success_rate"] for h in spo_history], marker="o", label="group success (%)")
+    right.plot(iterations, [100 * h["clip_fraction"] for h in spo_history], marker="s", label="clip fraction (%)")
+    right.set_xlabel("SPO iteration")
+    right.set_ylim(0, 105)
+    right.legend()
+    right.set_title("SPO rollouts")
+    for ax in (left, right):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, Any]:

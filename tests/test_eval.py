@@ -31,6 +31,10 @@ def test_summary_mean_and_std_over_seeds_hand_computed():
     table = markdown_table(rows).splitlines()
     assert table[0] == "| task | seed 0 | seed 1 | mean ± std |"
     assert "| a | 50.0 | 100.0 | 75.0 ± 35.4 |" in table and "| **overall** | 25.0 | 75.0 | 50.0 ± 35.4 |" in table
+    noisy = summarize({"a": {0: 0.5, 1: 1.0}, "b": {0: 0.0, 1: 0.5}}, episodes_per_task=8)
+    # a: p = 0.75 over 16 episodes -> sqrt(0.75 * 0.25 / 16); b: p = 0.25, the same; overall: sqrt(2 se²) / 2
+    assert noisy["a"]["se"] == pytest.approx(0.108253, abs=1e-6) and noisy["b"]["se"] == noisy["a"]["se"]
+    assert noisy["overall"]["se"] == pytest.approx(0.108253 / 2**0.5, abs=1e-6)
     single = summarize({"a": {3: 0.4}})
     assert single["a"]["std"] is None and "| a | 40.0 | 40.0 |" in markdown_table(single)
 

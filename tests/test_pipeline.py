@@ -71,6 +71,11 @@ def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
         rates = results["success_rate"][name]
         assert set(rates) == {*TASKS, "overall"} and all(0 <= r["mean"] <= 1 for r in rates.values())
     assert results["success_rate"]["il"]["drawer-close-v3"]["mean"] > 0
+    gain = results["cso_minus_il"]
+    il, cso = results["success_rate"]["il"]["overall"], results["success_rate"]["cso"]["overall"]
+    assert gain["mean"] == pytest.approx(cso["mean"] - il["mean"])
+    assert gain["ci95_high"] - gain["mean"] == pytest.approx(1.96 * (il["se"] ** 2 + cso["se"] ** 2) ** 0.5)
+    assert (out / "results.png").stat().st_size > 1000
     assert json.loads((out / "rsft" / "pretrained_model" / "config.json").read_text())["freeze_encoders"]
     assert len((out / "spo" / "log.jsonl").read_text().splitlines()) == 1  # one SPO iteration
 
