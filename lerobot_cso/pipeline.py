@@ -103,6 +103,9 @@ class PipelineConfig:
     # CPU threads of torch in every stage (lerobot-train too, via OMP_NUM_THREADS); null: torch's default.
     # 1 is much faster on a few shared cores, where spinning threads wait for each other.
     torch_threads: int | None = None
+    # Training seed of the whole run: when set, it replaces demos.seed, rsft.seed and spo.seed, and il.seed
+    # becomes 1000 + seed (evaluation states stay those of eval.seeds). null: each section's own seed.
+    seed: int | None = None
     demos: DemosConfig = field(default_factory=DemosConfig)
     il: ILConfig = field(default_factory=ILConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -160,6 +163,14 @@ class Pipeline:
     """The stages of one pipeline config, each run or skipped according to its record."""
 
     def __init__(self, cfg: PipelineConfig) -> None:
+        if cfg.seed is not None:
+            cfg = dataclasses.replace(
+                cfg,
+                demos=dataclasses.replace(cfg.demos, seed=cfg.seed),
+                il=dataclasses.replace(cfg.il, seed=1000 + cfg.seed),
+                rsft=dataclasses.replace(cfg.rsft, seed=cfg.seed),
+                spo=dataclasses.replace(cfg.spo, seed=cfg.seed),
+            )
         self.cfg = cfg
         self.out = cfg.output_dir
         try:
@@ -309,7 +320,7 @@ class Pipeline:
     def run_eval(self, name: str, policy_path: Path, upstream: str) -> dict[str, Any]:
         from lerobot_cso.evaluation import evaluate, markdown_table
 
-        cfg = self.eval_config(name, _policy_config(policy_path))
+        cfg = self.eval_config(name, policy_config(policy_path))
         spec = {"eval": _settings(cfg), "after": {upstream: self.finished_at(upstream)}}
 
         def run() -> dict[str, Any]:
@@ -323,7 +334,7 @@ class Pipeline:
     def run_rsft(self, il_policy: Path) -> Path:
         from lerobot_cso.cso.rsft import run_rsft
 
-        cfg = self.rsft_config(_policy_config(il_policy))
+        cfg = self.rsft_config(policy_config(il_policy))
         spec = {"rsft": _settings(cfg), "after": {"il": self.finished_at("il")}}
         out = cfg.output_dir / "pretrained_model"
         self.stage("rsft", spec, cfg.output_dir, out / "config.json", lambda: run_rsft(cfg))
@@ -332,7 +343,7 @@ class Pipeline:
     def run_spo(self, rsft_policy: Path) -> Path:
         from lerobot_cso.cso.spo import run_spo
 
-        cfg = self.spo_config(_policy_config(rsft_policy))
+        cfg = self.spo_config(policy_config(rsft_policy))
         spec = {"spo": _settings(cfg), "after": {"rsft": self.finished_at("rsft")}}
         out = cfg.output_dir / "pretrained_model"
         self.stage("spo", spec, cfg.output_dir, out / "config.json", lambda: run_spo(cfg))
@@ -388,7 +399,7 @@ class Pipeline:
         return results
 
 
-def _policy_config(path: Path) -> PreTrainedConfig:
+def policy_config(path: Path) -> PreTrainedConfig:
     config = PreTrainedConfig.from_pretrained(path)
     config.pretrained_path = path
     return config

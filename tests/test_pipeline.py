@@ -1,5 +1,6 @@
 """`lerobot-cso pipeline` as a real subprocess: a tiny end-to-end run, a rerun that skips every stage, bad configs."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -7,9 +8,11 @@ import sys
 import time
 from pathlib import Path
 
+import draccus
 import pytest
 
 from lerobot_cso.cli import main
+from lerobot_cso.pipeline import Pipeline, PipelineConfig
 
 BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
@@ -103,3 +106,12 @@ def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path
     assert main(["pipeline", f"--config_path={tiny_config}", *args]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: {message}")
     assert not (tmp_path / "run").exists()
+
+
+def test_top_level_seed_reaches_every_training_stage(tiny_config):
+    with open(tiny_config) as f:
+        cfg = draccus.load(PipelineConfig, f)
+    seeded = Pipeline(dataclasses.replace(cfg, seed=3)).cfg
+    assert (seeded.demos.seed, seeded.il.seed, seeded.rsft.seed, seeded.spo.seed) == (3, 1003, 3, 3)
+    unseeded = Pipeline(cfg).cfg
+    assert (unseeded.il.seed, unseeded.spo.seed) == (cfg.il.seed, cfg.spo.seed)

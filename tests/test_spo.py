@@ -66,7 +66,8 @@ def test_dynamic_rejection_draws_new_states_until_b_groups(rsft_policy, tmp_path
     # draw 3: S+3 (2/4, kept). 4 groups drawn, 2 rejected; 2+4+2 successes of 16 episodes.
     assert [[s.seed for s in call] for call in engine.calls] == [[S, S + 1], [S + 2], [S + 3]]
     assert [g[0].init_seed for g in groups] == [S + 1, S + 3]
-    assert stats == {"success_rate": 8 / 16, "rejection_rate": 0.5}
+    # ScriptedEngine episodes last 20 + sample steps: 4 groups of samples 0..3 -> 4 * (20 + 21 + 22 + 23) steps.
+    assert stats == {"success_rate": 8 / 16, "rejection_rate": 0.5, "episodes": 16, "env_steps": 4 * 86}
     assert cursor == 4
     assert [g[0].task for g in groups] == ["button-press-v3", "button-press-v3"]  # tasks alternate per state
 

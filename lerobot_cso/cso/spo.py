@@ -67,6 +67,8 @@ LOG_COLUMNS = (
     "loss",
     "grad_norm",
     "updates",
+    "episodes",
+    "env_steps",
     "seconds",
 )
 UPDATE_STATS = (
@@ -187,7 +189,7 @@ def collect_groups(
     sampling = Sampling(temperature=cfg.temperature, top_k=cfg.top_k)
     accepted: list[list[Episode]] = []
     outcomes: list[float] = []
-    drawn = 0
+    drawn = env_steps = 0
     while len(accepted) < cfg.groups_per_iteration and drawn < cfg.max_draw_factor * cfg.groups_per_iteration:
         n = cfg.groups_per_iteration - len(accepted)
         states = [
@@ -202,7 +204,13 @@ def collect_groups(
         accepted += [g for g, k in zip(groups, keep.tolist(), strict=True) if k]
         outcomes += rewards.reshape(-1).tolist()
         drawn += len(groups)
-    stats = {"success_rate": float(np.mean(outcomes)), "rejection_rate": 1 - len(accepted) / drawn}
+        env_steps += sum(e.length for e in result.episodes)
+    stats = {
+        "success_rate": float(np.mean(outcomes)),
+        "rejection_rate": 1 - len(accepted) / drawn,
+        "episodes": len(outcomes),
+        "env_steps": env_steps,
+    }
     return accepted, stats, cursor
 
 

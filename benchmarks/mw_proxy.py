@@ -1,0 +1,198 @@
+"""MW-proxy: IL, R-SFT only, SPO only, CSO and the token / trajectory / RIPT objectives on MetaWorld, per seed.
+
+Per training seed ``s`` (IL seed, R-SFT seed and SPO seed all derive from it): the pipeline of
+``--config`` (demos → IL → eval → R-SFT → eval → SPO → eval) gives ``il``, ``rsft`` and ``cso``; SPO from the IL
+checkpoint gives ``spo_only``; SPO with ``--objective=token|trajectory|ript`` from the same R-SFT checkpoint,
+with the same SPO settings (iterations, groups, K, draws), gives ``token``, ``trajectory``, ``ript``. Every
+evaluation is the config's ``eval`` section (held-out evaluation seed range). Env steps and episodes of every
+SPO run are counted and printed.
+
+Each finished (method, seed) is written at once to ``--results`` (default
+``benchmarks/results/mw_proxy.json``, committed with the measured run), and skipped when the command is run
+again, from this clone or another; unfinished stages resume from ``--work`` (their own records).
+
+    python benchmarks/mw_proxy.py                           # configs/mw_proxy.yaml, seeds 0,1,2
+    python benchmarks/mw_proxy.py --seeds=0                 # one seed
+"""
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import draccus
+import matplotlib
+import numpy as np
+
+from lerobot_cso.checkpoints import write_atomic
+from lerobot_cso.cso.spo import run_spo
+from lerobot_cso.evaluation import evaluate
+from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
+
+METHODS = ("il", "rsft", "spo_only", "cso", "token", "trajectory", "ript")
+SPO_RUNS = {
+    "spo_only": ("il", "skill"),
+    "token": ("rsft", "token"),
+    "trajectory": ("rsft", "trajectory"),
+    "ript": ("rsft", "ript"),
+}
+T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
+
+
+def load(path: Path, command: str) -> dict[str, Any]:
+    if path.is_file():
+        return json.loads(path.read_text())
+    return {
+        "methods": {m: {"per_seed": {}} for m in METHODS},
+        "env_steps": {},
+        "episodes": {},
+        "seconds": {},
+        "spo_history": {},
+        "command": command,
+    }
+
+
+def save(path: Path, results: dict[str, Any]) -> None:
+    for method in METHODS:
+        entry = results["methods"][method]
+        values = list(entry["per_seed"].values())
+        entry["mean"] = float(np.mean(values)) if values else None
+        entry["std"] = float(np.std(values, ddof=1)) if len(values) > 1 else None
+    results["cso_minus_il"] = paired_difference(results, "cso", "il")
+    results["rsft_minus_il"] = paired_difference(results, "rsft", "il")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, json.dumps(results, indent=2).encode())
+
+
+def paired_difference(results: dict[str, Any], a: str, b: str) -> dict[str, Any] | None:
+    """Mean over seeds of SR(a) − SR(b) with a Student-t 95 % CI (seeds paired), or None before 2 seeds."""
+    common = sorted(set(results["methods"][a]["per_seed"]) & set(results["methods"][b]["per_seed"]))
+    diffs = [results["methods"][a]["per_seed"][s] - results["methods"][b]["per_seed"][s] for s in common]
+    if len(diffs) < 2:
+        return {"mean": diffs[0], "ci95": None, "seeds": common} if diffs else None
+    mean, half = float(np.mean(diffs)), T_975[len(diffs) - 1] * float(np.std(diffs, ddof=1)) / math.sqrt(len(diffs))
+    return {"mean": mean, "ci95": [mean - half, mean + half], "seeds": common}
+
+
+def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
+    return (
+        float(np.mean([h["clip_fraction"] for h in history])),
+        sum(h.get("env_steps", 0) for h in history),
+        sum(h.get("episodes", 0) for h in history),
+    )
+
+
+def run_seed(cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any], path: Path) -> None:
+    key = str(seed)
+    if all(key in results["methods"][m]["per_seed"] for m in METHODS):
+        print(f"[mw_proxy] seed {seed}: complete, skipped")
+        return
+    started = time.perf_counter()
+    pipeline = Pipeline(dataclasses.replace(cfg, output_dir=work / f"seed{seed}", seed=seed))
+    cfg = pipeline.cfg
+    out = pipeline.run()
+    for method in ("il", "rsft", "cso"):
+        results["methods"][method]["per_seed"][key] = out["success_rate"][method]["overall"]["mean"]
+    checkpoints = {name: Path(p) for name, p in out["checkpoints"].items()}
+    history = [json.loads(line) for line in (cfg.output_dir / "spo" / "log.jsonl").read_text().splitlines()]
+    record_spo(results, "cso", key, history)
+    results["seconds"][key] = {"pipeline": time.perf_counter() - started}
+    save(path, results)
+    for method, (source, objective) in SPO_RUNS.items():
+        if key in results["methods"][method]["per_seed"]:
+            continue
+        t0 = time.perf_counter()
+        spo_cfg = dataclasses.replace(
+            pipeline.spo_config(policy_config(checkpoints[source])),
+            objective=objective,
+            output_dir=cfg.output_dir / method,
+        )
+        history = run_spo(spo_cfg)
+        rows = evaluate(pipeline.eval_config(method, policy_config(spo_cfg.output_dir / "pretrained_model")))
+        results["methods"][method]["per_seed"][key] = rows["overall"]["mean"]
+        record_spo(results, method, key, history)
+        results["seconds"][key][method] = time.perf_counter() - t0
+        save(path, results)
+        print(f"[mw_proxy] seed {seed} {method}: SR {100 * rows['overall']['mean']:.1f} %", flush=True)
+
+
+def record_spo(results: dict[str, Any], method: str, key: str, history: list[dict[str, Any]]) -> None:
+    clip, steps, episodes = spo_summary(history)
+    entry = results["methods"][method]
+    entry.setdefault("clip_fraction_per_seed", {})[key] = clip
+    entry["clip_fraction"] = float(np.mean(list(entry["clip_fraction_per_seed"].values())))
+    results["env_steps"].setdefault(method, {})[key] = steps
+    results["episodes"].setdefault(method, {})[key] = episodes
+    results["spo_history"].setdefault(method, {})[key] = [h["success_rate"] for h in history]
+
+
+def table(results: dict[str, Any]) -> str:
+    lines = [
+        "| method | SR mean ± std (%) | per seed | clip fraction | SPO env steps | SPO episodes |",
+        "|---|---:|---|---:|---:|---:|",
+    ]
+    for method in METHODS:
+        e = results["methods"][method]
+        if e["mean"] is None:
+            continue
+        spread = "" if e["std"] is None else f" ± {100 * e['std']:.1f}"
+        seeds = ", ".join(f"{100 * v:.1f}" for v in e["per_seed"].values())
+        clip = f"{e['clip_fraction']:.3f}" if "clip_fraction" in e else "–"
+        steps = sum(results["env_steps"].get(method, {}).values()) or "–"
+        episodes = sum(results["episodes"].get(method, {}).values()) or "–"
+        lines.append(f"| {method} | {100 * e['mean']:.1f}{spread} | {seeds} | {clip} | {steps} | {episodes} |")
+    for name in ("cso_minus_il", "rsft_minus_il"):
+        d = results.get(name)
+        if d:
+            ci = "" if d["ci95"] is None else f" [95 % CI {100 * d['ci95'][0]:+.1f}, {100 * d['ci95'][1]:+.1f}]"
+            lines.append(
+                f"\n{name.replace('_minus_', ' − ')}: {100 * d['mean']:+.1f} points{ci} over seeds {d['seeds']}"
+            )
+    return "\n".join(lines)
+
+
+def plot(results: dict[str, Any], path: Path) -> None:
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for method, per_seed in results["spo_history"].items():
+        curves = [np.array(c) for c in per_seed.values()]
+        n = min(len(c) for c in curves)
+        ax.plot(range(1, n + 1), 100 * np.mean([c[:n] for c in curves], axis=0), marker="o", label=method)
+    ax.set_xlabel("SPO iteration")
+    ax.set_ylabel("success rate of the collected groups (%)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", type=Path, default=Path("configs/mw_proxy.yaml"))
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
+    parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
+    args = parser.parse_args()
+    command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
+    with open(args.config) as f:
+        cfg = draccus.load(PipelineConfig, f)
+    results = load(args.results, command)
+    started = time.perf_counter()
+    for seed in (int(s) for s in args.seeds.split(",")):
+        run_seed(cfg, seed, args.work, results, args.results)
+    results["wall_seconds_this_run"] = time.perf_counter() - started
+    save(args.results, results)
+    plot(results, args.results.with_suffix(".png"))
+    print(table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
