@@ -11,8 +11,8 @@ Each finished (method, seed) is written at once to ``--results`` (default
 ``benchmarks/results/mw_proxy.json``, committed with the measured run), and skipped when the command is run
 again, from this clone or another; unfinished stages resume from ``--work`` (their own records).
 
-    python benchmarks/mw_proxy.py                           # configs/mw_proxy.yaml, seeds 0,1,2
-    python benchmarks/mw_proxy.py --seeds=0                 # one seed
+    python benchmarks/mw_proxy.py             # the demo's settings (configs/metaworld_demo.yaml), seeds 0,1,2
+    python benchmarks/mw_proxy.py --seeds=0   # one seed
 """
 
 import argparse
@@ -175,7 +175,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", type=Path, default=Path("configs/mw_proxy.yaml"))
+    parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
