@@ -1,10 +1,12 @@
 """A pool of MetaWorld envs (a gymnasium vector env) that runs a queue of episodes under one controller.
 
-The vector env runs with ``autoreset_mode=DISABLED``: when a slot's episode ends, the pool resets just that
-slot (``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, or parks
-it when no job may start now. Jobs only start on global steps that are multiples of ``start_every``; the
-policy-driven engine sets it to the number of actions per decision, so every running episode takes its
-decisions on the same steps and each decision round is one batched policy call. A parked slot costs no
+The vector env runs with ``autoreset_mode=DISABLED``: a slot whose episode ended is parked at once, then reset
+(``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, when one may
+start. The controller returns one action per slot, or a chunk of L actions that the pool executes open-loop
+(:func:`~lerobot_cso.rollout.sharded.step_chunk`). Jobs only start on global steps that are multiples of
+``start_every``; the policy-driven engine sets it to the number of actions per decision and returns chunks of
+that length, so every running episode takes its decisions on the same steps and each decision round is one
+batched policy call. A parked slot costs no
 simulation (in a ``SyncVectorEnv`` it costs nothing at all), so the alignment is free for state-only
 rollouts. Jobs are handed out with task affinity (a slot stays on its task while that task has jobs left),
 so that each env builds few MuJoCo models.
