@@ -15,8 +15,9 @@ that leaves the top-k keeps a finite ratio.
 
 Every iteration is checkpointed atomically (policy, processors, optimizer, seed cursor, history); a rerun
 continues after the last finished iteration. Logged per iteration: SR of the collected groups, rejection
-rate, clip fraction, approximate KL, loss, grad norm, wall time — console table, ``log.jsonl``, PNG plots,
-and wandb when ``--wandb.enable=true``.
+rate, clip fraction (and its low / high sides), mean ratio, approximate KL, loss, grad norm, number of
+updates (``target_kl`` can end an iteration's epochs early), episodes, env steps, wall time — console table,
+``log.jsonl``, PNG plots, and wandb when ``--wandb.enable=true``.
 """
 
 import json
