@@ -9,11 +9,11 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
 
+from .clock import SYSTEM_CLOCK, Clock
 from .codec import (
     ID_ARM_STATUS,
     ID_GRIPPER_FEEDBACK,
@@ -192,10 +192,15 @@ def is_motion_recoverable(fault: Fault) -> bool:
 
 
 class PiperDriver:
-    """Drives one PiPER follower over python-can; every method is safe to call from any thread."""
+    """Drives one PiPER follower over python-can; every method is safe to call from any thread.
 
-    def __init__(self, config: DriverConfig | None = None) -> None:
+    ``clock`` is the time it runs on (``piper_can.clock``): the system's, or a ``SimulatedClock`` that
+    tests step together with an emulated arm, without threads.
+    """
+
+    def __init__(self, config: DriverConfig | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
         self.config = config or DriverConfig()
+        self.clock = clock
         cfg = self.config
         watched = (*ID_JOINT_FEEDBACK, ID_GRIPPER_FEEDBACK, ID_ARM_STATUS)
         if cfg.use_velocity_and_torque:
@@ -203,7 +208,7 @@ class PiperDriver:
         watch = dict.fromkeys(watched, cfg.feedback_timeout_s)
         # The enable bits come at 40 Hz: allow them two of their periods more.
         watch |= dict.fromkeys(ID_LOW_SPEED, cfg.feedback_timeout_s + 2 * LOW_SPEED_PERIOD_S)
-        self.link = PiperLink(cfg.interface, cfg.channel, cfg.bitrate, cfg.bus_options, watch, "feedback frame")
+        self.link = PiperLink(cfg.interface, cfg.channel, cfg.bitrate, cfg.bus_options, watch, "feedback frame", clock)
         self.limits: JointLimits = cfg.limits  # the soft limits, narrowed to the firmware's on connect
         self._estopped = threading.Event()
         self._reset_sent_at: float | None = None
@@ -342,8 +347,8 @@ class PiperDriver:
         self._leave_high_follow()
         self._wait_out_reset()
         timeout = self.config.enable_timeout_s
-        started = time.time()  # frames are stamped on this clock: only later ones count
-        deadline = time.monotonic() + timeout
+        started = self.clock.time()  # frames are stamped on this clock: only later ones count
+        deadline = self.clock.monotonic() + timeout
         backoff = ENABLE_BACKOFF_START_S
         requests = 0
         request = encode(MotorEnable(MOTOR_ALL_JOINTS, True))
@@ -353,11 +358,11 @@ class PiperDriver:
                 requests += 1
             except PiperConnectionError as exc:  # e.g. ENOBUFS: a full TX queue; back off and retry
                 log.debug("enable request not sent: %s", exc)
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self.clock.monotonic()
             enabled = self.link.wait_for(lambda s: not _disabled_parts(s, started), max(min(backoff, remaining), 0))
             if enabled and requests >= 2:
                 break
-            if time.monotonic() >= deadline:
+            if self.clock.monotonic() >= deadline:
                 missing = _disabled_parts(self.link.state(), started)
                 raise EnableTimeoutError(
                     f"PiPER on {self.link.where} did not report enabled within {timeout:.1f} s after "
@@ -409,23 +414,23 @@ class PiperDriver:
         if self._reset_sent_at is None:
             return
         sent_at = self._reset_sent_at
-        remaining = sent_at + self.config.reset_settle_s - time.time()
+        remaining = sent_at + self.config.reset_settle_s - self.clock.time()
         if self._enabled_before_reset:  # the motor-off shows as enable bits going clear after the reset
             seen = self.link.wait_for(lambda s: _joints_disabled_since(s, sent_at), max(remaining, 0.0))
             if not seen:
                 log.info("PiPER on %s: motors still on %.1f s after the reset", self.link.where, remaining)
         elif remaining > 0:  # already off: nothing to observe, wait the delay itself
-            time.sleep(remaining)
+            self.link.sleep(remaining)
         self._reset_sent_at = None
 
     def _select_mode(self, deadline: float) -> None:
-        sent_at = time.time()
+        sent_at = self.clock.time()
         self.link.send(self._mode_frame())
 
         def confirmed(s: ArmState) -> bool:
             return s.status is not None and s.status.timestamp > sent_at and _mode_problem(s) is None
 
-        if not self.link.wait_for(confirmed, max(deadline - time.monotonic(), FEEDBACK_PERIOD_S * 4)):
+        if not self.link.wait_for(confirmed, max(deadline - self.clock.monotonic(), FEEDBACK_PERIOD_S * 4)):
             problem = _mode_problem(self.link.state()) or "no status frame"
             raise EnableTimeoutError(f"PiPER on {self.link.where} did not confirm the 0x151 mode change: {problem}")
         self._may_be_high_follow = self.config.high_follow
@@ -435,7 +440,7 @@ class PiperDriver:
 
         Warning: a raised arm falls when its motors lose power.
         """
-        sent_at = time.time()
+        sent_at = self.clock.time()
         frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
         self.link.send(*frames)
         self.link.send(*frames)
@@ -450,7 +455,7 @@ class PiperDriver:
         code = GripperStatusCode.ENABLE_CLEAR_ERROR
         if gripper is None or not gripper.value.enabled:
             code = GripperStatusCode.DISABLE_CLEAR_ERROR
-        sent_at = time.time()
+        sent_at = self.clock.time()
         self.link.send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code))
 
         def cleared(s: ArmState) -> bool:
@@ -474,7 +479,7 @@ class PiperDriver:
         log.warning("PiPER on %s: reset (0x150 02)", self.link.where)
         state = self.link.state()
         self._enabled_before_reset = all(state.joints_enabled)
-        sent_at = time.time()
+        sent_at = self.clock.time()
         self.link.send(encode(EmergencyStop(EStopAction.RESUME)))
         self._reset_sent_at = sent_at
         self._may_be_high_follow = False
@@ -569,14 +574,14 @@ class PiperDriver:
         cfg = self.config
         step = cfg.rest_speed_rad_s * REST_PERIOD_S
         steps = tuple(min(step, s) for s in (cfg.joint_steps() or (step,) * NUM_JOINTS))
-        deadline = time.monotonic() + cfg.rest_timeout_s
-        while time.monotonic() < deadline:
+        deadline = self.clock.monotonic() + cfg.rest_timeout_s
+        while self.clock.monotonic() < deadline:
             state = self.checked_state()
             joints, gripper = state.joint_positions_rad, state.gripper
             if joints is not None and gripper is not None and _at(joints, gripper.value.opening_m, cfg):
                 return True
             self._command(cfg.rest_pose_rad, cfg.rest_gripper_m, steps, cfg.max_gripper_step_m)
-            time.sleep(REST_PERIOD_S)
+            self.link.sleep(REST_PERIOD_S)
         return False
 
     # ------------------------------------------------------------------------------- e-stop

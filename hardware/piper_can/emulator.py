@@ -1,8 +1,10 @@
 """Runs the simulated PiPER firmware (``piper_can.firmware``) on a python-can bus.
 
 Two ways: ``step(dt)`` handles every queued frame, advances the model ``dt`` and sends one cycle
-(deterministic); ``start()`` does the same in real time on a daemon thread. While that thread runs,
-change the model inside ``with emulator.locked() as firmware:``.
+(deterministic; on a ``SimulatedClock``, register it with ``clock.every(period, emulator.step)``);
+``start()`` does the same in real time on a daemon thread. While that thread runs, change the model
+inside ``with emulator.locked() as firmware:``. Frames are stamped with the clock's time (kept by
+python-can's ``virtual`` bus with ``preserve_timestamps=True``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from contextlib import contextmanager
 
 import can
 
+from .clock import SYSTEM_CLOCK, Clock
 from .codec import Frame
 from .firmware import EmulatorConfig, PiperFirmware
 
@@ -27,8 +30,9 @@ _MAX_REAL_TIME_STEP_S = 0.1
 class PiperEmulator:
     """A ``PiperFirmware`` on ``bus``: received frames go to ``handle``, its frames go on the bus."""
 
-    def __init__(self, bus: can.BusABC, config: EmulatorConfig | None = None) -> None:
+    def __init__(self, bus: can.BusABC, config: EmulatorConfig | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
         self.bus = bus
+        self.clock = clock
         self.firmware = PiperFirmware(config)
         self._rng = random.Random(self.firmware.config.seed)
         self._thread: threading.Thread | None = None
@@ -51,6 +55,8 @@ class PiperEmulator:
         """Run in real time on a daemon thread until ``stop``."""
         if self._thread is not None:
             raise RuntimeError("the emulator is already running")
+        if not self.clock.real_time:
+            raise RuntimeError("a simulated clock runs the emulator through clock.every(period, emulator.step)")
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="piper-emulator", daemon=True)
         self._thread.start()
@@ -96,7 +102,9 @@ class PiperEmulator:
 
     def _send(self, frames: list[Frame]) -> None:
         for frame in frames:
-            msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+            msg = can.Message(
+                timestamp=self.clock.time(), arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False
+            )
             try:
                 self.bus.send(msg)
             except can.CanError as exc:  # a full socket buffer must not kill the firmware loop

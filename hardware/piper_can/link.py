@@ -10,18 +10,21 @@ frame before it judges, and trips (latched) when the bus went silent or a watche
 cannot pass old positions off as fresh. A trip is re-armed only explicitly, and only once every
 watched frame has arrived again (``rearm``). CAN error frames are counted and logged; bus-off is
 latched like a trip.
+
+On a simulated clock (``piper_can.clock``) there is no reader thread: every ``state``,
+``raise_if_unhealthy`` and wait first reads what is queued (``poll``), then judges at the clock's time.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 
 import can
 
+from .clock import SYSTEM_CLOCK, Clock
 from .codec import (
     COMMAND_IDS,
     DLC,
@@ -156,6 +159,7 @@ class PiperLink:
         bus_options: Mapping[str, object] | None = None,
         watch: Mapping[int, float] | None = None,
         watch_name: str = "feedback",
+        clock: Clock = SYSTEM_CLOCK,
     ) -> None:
         self.interface = interface
         self.channel = channel
@@ -163,11 +167,13 @@ class PiperLink:
         self.bus_options = dict(bus_options or {})
         self.watchdog = Watchdog(watch or {})
         self.watch_name = watch_name
+        self.clock = clock
         self.cache = FeedbackCache()
         self.bad_frames = 0
         self.error_frames: Counter[str] = Counter()
         self._bus: can.BusABC | None = None
         self._send_lock = threading.Lock()
+        self._poll_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._heard: set[int] = set()
@@ -194,8 +200,9 @@ class PiperLink:
         self.error_frames.clear()
         self._bus_error = None
         self._stop.clear()
-        self._thread = threading.Thread(target=self._read_loop, name=f"piper-reader-{self.channel}", daemon=True)
-        self._thread.start()
+        if self.clock.real_time:
+            self._thread = threading.Thread(target=self._read_loop, name=f"piper-reader-{self.channel}", daemon=True)
+            self._thread.start()
         wanted = frozenset(first_frames)
         if not self._wait(lambda: wanted <= self._heard, timeout_s):
             self.close()
@@ -204,7 +211,7 @@ class PiperLink:
                 f"no PiPER heard on {self.where} within {timeout_s:.1f} s (missing frames {missing}); "
                 "check the channel, the wiring and that the arm is powered"
             )
-        self._arm(time.time())
+        self._arm(self.clock.time())
 
     def _arm(self, now: float) -> None:
         self._stale = None
@@ -214,10 +221,11 @@ class PiperLink:
     def rearm(self) -> None:
         """Re-arm a tripped watchdog (and clear a bus-off) once every watched frame arrived again after
         the trip; otherwise raise ``FeedbackStaleError`` naming what is still missing."""
-        now = time.time()
+        self.poll()
+        now = self.clock.time()
         since = self.stale_at if self.stale_at is not None else (self.watchdog.armed_at or 0.0)
         missing = self.watchdog.missing_since(since, now)
-        if self._thread is None or not self._thread.is_alive() or missing:
+        if not self._reading() or missing:
             what = ", ".join(f"0x{i:X}" for i in missing) or "the reader"
             raise FeedbackStaleError(f"cannot re-arm the watchdog on {self.where}: still no fresh {what}")
         log.warning("PiPER on %s: watchdog re-armed after fresh feedback (was: %s)", self.where, self._stale)
@@ -257,14 +265,35 @@ class PiperLink:
                     raise PartialCommandError(self.where, ids[:i], ids[i:], exc) from exc
 
     def _send_one(self, bus: can.BusABC, frame: Frame) -> None:
-        msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+        msg = can.Message(
+            timestamp=self.clock.time(), arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False
+        )
         try:
             bus.send(msg, timeout=0.05)
         except can.CanError as exc:
             raise PiperConnectionError(f"sending 0x{frame.arbitration_id:X} on {self.where} failed: {exc}") from exc
 
     def state(self) -> ArmState:
+        self.poll()
         return self.cache.snapshot()
+
+    def poll(self) -> None:
+        """On a simulated clock: read every queued frame and judge the watchdog now (no-op otherwise:
+        the reader thread does it)."""
+        bus = self._bus
+        if self.clock.real_time or bus is None:
+            return
+        with self._poll_lock:
+            while (msg := bus.recv(timeout=0)) is not None:
+                self._handle(msg)
+            now = self.clock.time()
+            self._check_age(now)
+            self.cache.roll_rates(now)
+
+    def _reading(self) -> bool:
+        if not self.clock.real_time:
+            return self._bus is not None
+        return self._thread is not None and self._thread.is_alive()
 
     @property
     def stale_error(self) -> FeedbackStaleError | None:
@@ -278,33 +307,40 @@ class PiperLink:
 
     def raise_if_unhealthy(self) -> None:
         """Raise if the reader died, the bus went off, or the watchdog tripped (or trips now)."""
-        if self._thread is None or not self._thread.is_alive():
+        if not self._reading():
             raise FeedbackStaleError(f"the CAN reader for {self.where} is not running; reconnect")
+        self.poll()
         if self._bus_error is not None:
             raise self._bus_error
-        if self.watchdog.armed and self._stale is None:
+        if self.clock.real_time and self.watchdog.armed and self._stale is None:
             # Frames may be queued for a reader that merely waits for the GIL: give it up to one
             # timeout to drain them before judging.
-            deadline = time.monotonic() + min(self.watchdog.timeouts.values())
-            while self.watchdog.overdue(time.time()) and time.monotonic() < deadline:
-                time.sleep(_POLL_S / 4)
-            self._check_age(time.time())
+            clock = self.clock
+            deadline = clock.monotonic() + min(self.watchdog.timeouts.values())
+            while self.watchdog.overdue(clock.time()) and clock.monotonic() < deadline:
+                clock.sleep(_POLL_S / 4)
+            self._check_age(clock.time())
         if self._stale is not None:
             raise self._stale
 
     def wait_for(self, predicate: Callable[[ArmState], bool], timeout_s: float) -> bool:
         """Poll the state until ``predicate`` holds; False on timeout."""
-        return self._wait(lambda: predicate(self.cache.snapshot()), timeout_s)
+        return self._wait(lambda: predicate(self.state()), timeout_s)
 
-    @staticmethod
-    def _wait(condition: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
+    def sleep(self, seconds: float) -> None:
+        """Wait on the link's clock, then read what arrived meanwhile."""
+        self.clock.sleep(seconds)
+        self.poll()
+
+    def _wait(self, condition: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = self.clock.monotonic() + timeout_s
         while True:
+            self.poll()
             if condition():
                 return True
-            if time.monotonic() >= deadline:
+            if self.clock.monotonic() >= deadline:
                 return False
-            time.sleep(_POLL_S)
+            self.clock.sleep(_POLL_S)
 
     # ---------------------------------------------------------------------------- reader thread
     def _check_age(self, now: float) -> None:
@@ -326,19 +362,19 @@ class PiperLink:
             wait = _IDLE_WAIT_S
             deadline = self.watchdog.next_deadline()
             if deadline is not None and self._stale is None:
-                wait = min(max(deadline - time.time(), 5e-4), wait)
+                wait = min(max(deadline - self.clock.time(), 5e-4), wait)
             try:
                 msg = bus.recv(timeout=wait)
                 while True:  # drain everything queued before judging the age
                     if msg is not None:
                         self._handle(msg)
-                    now = time.time()
+                    now = self.clock.time()
                     msg = bus.recv(timeout=0)
                     if msg is None:
                         break
             except Exception as exc:  # the bus went away under us
                 if self._stale is None:
-                    self.stale_at = time.time()
+                    self.stale_at = self.clock.time()
                     self._stale = FeedbackStaleError(f"reading the CAN bus {self.where} failed: {exc}")
                     log.error("%s", self._stale)
                 return
@@ -356,7 +392,7 @@ class PiperLink:
         if len(msg.data) != DLC:
             self.bad_frames += 1
             return
-        now = time.time()
+        now = self.clock.time()
         arrived = msg.timestamp if abs(now - msg.timestamp) < _PLAUSIBLE_CLOCK_SKEW_S else now
         self.cache.update(frame_id, bytes(msg.data), arrived)
         self._heard.add(frame_id)

@@ -1,4 +1,10 @@
-"""Helpers for the PiPER tests: unique python-can channels, an emulated arm + driver rig, a bus monitor."""
+"""Helpers for the PiPER tests: unique python-can channels, an emulated arm + driver rig, a bus monitor.
+
+By default the rig runs on a ``SimulatedClock``: the emulated firmware steps every 5 ms of simulated
+time, the driver reads the bus when it asks for the state, and every frame carries its simulated
+send time; one thread, exact times, no sleeps. ``real_time=True`` runs the emulator on its thread
+and the driver's reader thread on the wall clock (for the tests about threads and starvation).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +17,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import can
+from piper_can.clock import SYSTEM_CLOCK, Clock, SimulatedClock
 from piper_can.driver import DriverConfig, PiperDriver
 from piper_can.emulator import PiperEmulator
 from piper_can.firmware import EmulatorConfig, PiperFirmware
@@ -35,6 +42,7 @@ class Rig:
     emulator: PiperEmulator
     driver: PiperDriver
     monitor: can.BusABC
+    clock: Clock
     buses: list[can.BusABC] = field(default_factory=list)
 
     @property
@@ -49,29 +57,55 @@ class Rig:
             frames.append(msg)
         return frames
 
+    def now(self) -> float:
+        return self.clock.time()
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` pass (simulated: the arm steps; the driver reads what arrived)."""
+        self.clock.sleep(seconds)
+        if self.driver.is_connected:
+            self.driver.link.poll()
+
+    def until(self, condition, timeout: float = 2.0, period: float = 0.001) -> bool:
+        """Let time pass in ``period`` steps until ``condition()`` holds; False after ``timeout``."""
+        deadline = self.clock.monotonic() + timeout
+        while self.clock.monotonic() < deadline:
+            if condition():
+                return True
+            self.sleep(period)
+        return condition()
+
 
 @contextmanager
 def make_rig(
     emulator_config: EmulatorConfig | None = None,
     connect: bool = True,
     enable: bool = True,
+    real_time: bool = False,
     **driver_options,
 ) -> Iterator[Rig]:
     channel = unique_virtual_channel()
-    emulator_bus = can.Bus(interface="virtual", channel=channel)
-    monitor = can.Bus(interface="virtual", channel=channel)
-    emulator = PiperEmulator(emulator_bus, emulator_config)
-    emulator.start()
-    # The emulator shares this process (and the GIL) with the driver and the test, so a busy machine can
-    # delay its 200 Hz loop: only the watchdog tests use the 15 ms default.
-    driver_options.setdefault("feedback_timeout_s", 0.1)
-    driver = PiperDriver(DriverConfig(interface="virtual", channel=channel, **driver_options))
-    rig = Rig(channel, emulator, driver, monitor, [emulator_bus, monitor])
+    clock: Clock = SYSTEM_CLOCK if real_time else SimulatedClock()
+    bus_options = {} if real_time else {"preserve_timestamps": True}  # frames keep their simulated times
+    emulator_bus = can.Bus(interface="virtual", channel=channel, **bus_options)
+    monitor = can.Bus(interface="virtual", channel=channel, **bus_options)
+    emulator = PiperEmulator(emulator_bus, emulator_config, clock)
+    if real_time:
+        emulator.start()
+        # The emulator shares this process (and the GIL) with the driver and the test, so a busy machine
+        # can delay its 200 Hz loop: the real-time tests allow 100 ms instead of the 15 ms default.
+        driver_options.setdefault("feedback_timeout_s", 0.1)
+    else:
+        clock.every(emulator.firmware.config.period_s, emulator.step)
+    config = DriverConfig(interface="virtual", channel=channel, bus_options=bus_options, **driver_options)
+    driver = PiperDriver(config, clock)
+    rig = Rig(channel, emulator, driver, monitor, clock, [emulator_bus, monitor])
     # A full garbage collection stops every thread of this (torch-sized) test process for up to a few
     # hundred ms, the emulated arm included, which the watchdog would rightly call stale feedback. A
     # real arm keeps talking through our GC pauses, and the reader drains what queued up meanwhile.
     gc_was_enabled = gc.isenabled()
-    gc.disable()
+    if real_time:
+        gc.disable()
     try:
         if connect:
             driver.connect()

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 import random
-import sys
 import threading
 import time
 
 import can
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -28,7 +28,7 @@ from piper_can.errors import (
 )
 from piper_can.firmware import EmulatorConfig
 from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
-from piper_rig import make_rig, unique_virtual_channel, wait_until
+from piper_rig import make_rig, unique_virtual_channel
 
 PERIOD = 0.005
 POSE = (0.3, 0.8, -0.6, 0.2, 0.1, -0.2)
@@ -36,13 +36,13 @@ POSE = (0.3, 0.8, -0.6, 0.2, 0.1, -0.2)
 
 def walk_to(driver: PiperDriver, joints, gripper=None, timeout: float = 5.0) -> None:
     """Command repeatedly (the step limit caps each command) until the arm is there."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    deadline = driver.clock.monotonic() + timeout
+    while driver.clock.monotonic() < deadline:
         driver.command(joints, gripper)
         there = driver.state().joint_positions_rad
         if all(abs(a - b) < 1e-3 for a, b in zip(there, joints, strict=True)):
             return
-        time.sleep(0.01)
+        driver.link.sleep(0.01)
     raise AssertionError(f"arm did not reach {joints}: {driver.state().joint_positions_rad}")
 
 
@@ -56,7 +56,7 @@ def test_enable_handshake_converges_and_rates_are_measured(rig):
     assert rig.arm.ctrl_mode == codec.CtrlMode.CAN and rig.arm.speed_percent == 50
     enables = [m for m in rig.drain() if m.arbitration_id == 0x471]
     assert len(enables) >= 2 and all(bytes(m.data) == bytes.fromhex("0702000000000000") for m in enables)
-    time.sleep(1.2)
+    rig.sleep(1.2)
     state = rig.driver.state()
     assert state.rates_hz[0x2A1] == pytest.approx(200, rel=0.15)
     assert state.rates_hz[0x2A5] == pytest.approx(200, rel=0.15)
@@ -74,17 +74,18 @@ def test_enable_survives_latency_and_a_firmware_that_wants_two_requests():
 
 def test_enable_timeout_is_one_clear_error_after_capped_backoff():
     with make_rig(EmulatorConfig(enable_latency_s=60.0), enable=False, enable_timeout_s=0.6) as rig:
-        start = time.monotonic()
+        rig.drain()
+        start = rig.now()
         with pytest.raises(EnableTimeoutError) as err:
             rig.driver.enable()
-        elapsed = time.monotonic() - start
         message = str(err.value)
         assert "\n" not in message
         assert "did not report enabled within 0.6 s" in message
         assert "joint_1, joint_2, joint_3, joint_4, joint_5, joint_6" in message  # gripper enables at once
-        assert 0.6 <= elapsed < 1.0
-        requests = [m for m in rig.drain() if m.arbitration_id == 0x471]
-        assert 4 <= len(requests) <= 10  # 10, 20, 40, 80, 160, 200, 200 ms: backed off, not hammered
+        assert rig.now() - start == pytest.approx(0.6, abs=0.0025)  # the timeout, to one poll
+        requests = [m.timestamp - start for m in rig.drain() if m.arbitration_id == 0x471]
+        # Backed off, not hammered: 10, 20, 40, 80, 160 ms, then capped at 200 ms (to one 2 ms poll).
+        assert np.diff(requests) == pytest.approx([0.01, 0.02, 0.04, 0.08, 0.16, 0.2], abs=0.0025)
 
 
 def test_connect_without_an_arm_is_one_clear_error():
@@ -102,73 +103,72 @@ def test_unknown_interface_is_one_clear_error():
 
 
 # ---------------------------------------------------------------------------------- watchdog
-@pytest.fixture
-def watchdog_rig():
-    """The driver's default watchdog (3 feedback periods = 15 ms). The emulated arm, the reader and the
-    test share one interpreter here, so a thread can wait a whole GIL switch interval (5 ms) to run:
-    lighter feedback and a 1 ms interval keep that from being measured as watchdog latency."""
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(0.001)
-    try:
-        with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=3 * PERIOD) as rig:
-            yield rig
-    finally:
-        sys.setswitchinterval(interval)
-
-
 def test_default_watchdog_is_three_feedback_periods():
     assert DriverConfig().feedback_timeout_s == pytest.approx(3 * PERIOD)
 
 
 def test_watchdog_stays_quiet_while_feedback_flows():
-    # 100 ms rather than the 15 ms default: on 2 shared cores the emulator thread itself can be descheduled for
-    # over 15 ms, which is a real feedback gap. What this checks is that flowing feedback never trips it
-    # (clock or timestamp mix-ups would); the 15 ms latency is measured by the test below.
-    with make_rig(EmulatorConfig(profile="light"), feedback_timeout_s=0.1) as rig:
-        for _ in range(50):
+    # The 15 ms default, on simulated time: flowing feedback never trips it (clock or timestamp mix-ups
+    # would), while an exact simulation leaves no room for a stalled thread to excuse a trip.
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        assert rig.driver.config.feedback_timeout_s == pytest.approx(3 * PERIOD)
+        for _ in range(100):
             rig.driver.command(POSE, 0.02)
-            time.sleep(0.02)
+            rig.sleep(0.02)
         assert rig.driver.link.stale_error is None
 
 
-@pytest.mark.parametrize("fault", ["drop one joint frame", "bus silence"])
-def test_watchdog_fires_within_three_periods_and_stops_commanding(watchdog_rig, fault):
-    rig = watchdog_rig
-    rig.driver.command(POSE[:1] + (0.0,) * 5)
-    if fault == "bus silence":
-        rig.arm.silent = True
-    else:
-        rig.arm.drop_ids = {0x2A6}
-    assert wait_until(lambda: rig.driver.link.stale_error is not None, timeout=1.0)
-    watchdog = rig.driver.link.watchdog
-    last_frame = min(watchdog.last_seen[i] for i, limit in watchdog.timeouts.items() if limit == 3 * PERIOD)
-    latency = rig.driver.link.stale_at - last_frame
-    # No frame for more than 3 periods trips it; it must trip within 3 periods of the first missing frame.
-    assert 3 * PERIOD < latency <= 4 * PERIOD, f"watchdog latency {latency * 1e3:.1f} ms"
-    stale = "0x2A6" if fault == "drop one joint frame" else "0x2A1"  # the status frame leads each cycle
-    assert f"stale feedback: no feedback frame {stale}" in str(rig.driver.link.stale_error)
-    rig.drain()
-    with pytest.raises(FeedbackStaleError):
-        rig.driver.command(POSE, 0.02)
-    with pytest.raises(FeedbackStaleError):
-        rig.driver.checked_state()
-    time.sleep(0.05)
-    assert motion_frames(rig.drain()) == []
-
-
-def test_a_reader_that_falls_behind_cannot_pass_old_positions_off_as_fresh(rig):
-    handle = rig.driver.link._handle
-
-    def slow_handle(msg):  # a CPU-starved reader: 1 ms per frame while ~3000 frames/s arrive
-        time.sleep(0.001)
-        handle(msg)
-
-    rig.driver.link._handle = slow_handle
-    deadline = time.monotonic() + 3.0
-    with pytest.raises(FeedbackStaleError, match="stale feedback"):
-        while time.monotonic() < deadline:
+@pytest.mark.parametrize(("fault", "stale"), [("drop one joint frame", "0x2A6"), ("bus silence", "0x2A5")])
+def test_watchdog_fires_within_three_periods_and_stops_commanding(fault, stale):
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        rig.driver.command(POSE[:1] + (0.0,) * 5)
+        if fault == "bus silence":
+            rig.arm.silent = True
+        else:
+            rig.arm.drop_ids = {0x2A6}
+        assert rig.until(lambda: rig.driver.link.stale_error is not None, timeout=1.0)
+        watchdog = rig.driver.link.watchdog
+        last_frame = min(watchdog.last_seen[i] for i, limit in watchdog.timeouts.items() if limit == 3 * PERIOD)
+        latency = rig.driver.link.stale_at - last_frame
+        # No frame for more than 3 periods trips it, at the first look after that (the rig looks every ms).
+        assert 3 * PERIOD < latency <= 3 * PERIOD + 0.001 + 1e-9, f"watchdog latency {latency * 1e3:.3f} ms"
+        assert f"stale feedback: no feedback frame {stale}" in str(rig.driver.link.stale_error)
+        rig.drain()
+        with pytest.raises(FeedbackStaleError):
             rig.driver.command(POSE, 0.02)
-            time.sleep(0.01)
+        with pytest.raises(FeedbackStaleError):
+            rig.driver.checked_state()
+        rig.sleep(0.05)
+        assert motion_frames(rig.drain()) == []
+
+
+def test_stale_feedback_is_caught_on_the_next_command_without_waiting():
+    # A polled link judges at each look: a command 16 ms after the last frame is refused at once.
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        rig.arm.silent = True
+        rig.clock.sleep(0.016)  # time passes; nobody looks at the bus meanwhile
+        rig.drain()
+        with pytest.raises(FeedbackStaleError, match="for 1[6-9] ms"):
+            rig.driver.command(POSE)
+        assert motion_frames(rig.drain()) == []
+
+
+def test_a_reader_that_falls_behind_cannot_pass_old_positions_off_as_fresh():
+    # On the wall clock, with the reader thread: a CPU-starved reader (1 ms per frame while ~3000
+    # frames/s arrive) must trip the watchdog rather than serve old positions.
+    with make_rig(real_time=True) as rig:
+        handle = rig.driver.link._handle
+
+        def slow_handle(msg):
+            time.sleep(0.001)
+            handle(msg)
+
+        rig.driver.link._handle = slow_handle
+        deadline = time.monotonic() + 3.0
+        with pytest.raises(FeedbackStaleError, match="stale feedback"):
+            while time.monotonic() < deadline:
+                rig.driver.command(POSE, 0.02)
+                time.sleep(0.01)
 
 
 # ------------------------------------------------------------------------ clamps and commands
@@ -196,7 +196,7 @@ def test_non_finite_targets_are_refused_before_the_bus(rig):
         rig.driver.command([0.0] * 6, math.inf)
     with pytest.raises(ValueError, match="expected 6 joint targets"):
         rig.driver.command([0.0] * 5)
-    time.sleep(0.02)
+    rig.sleep(0.02)
     assert motion_frames(rig.drain()) == []
 
 
@@ -212,7 +212,7 @@ def test_frames_of_concurrent_commands_never_interleave(rig):
         t.start()
     for t in threads:
         t.join()
-    time.sleep(0.02)
+    rig.sleep(0.02)
     ids = [m.arbitration_id for m in rig.drain() if m.arbitration_id in (0x151, *codec.ID_JOINT_COMMAND, 0x159)]
     assert len(ids) == 200 * 5
     assert all(ids[i : i + 5] == [0x151, 0x155, 0x156, 0x157, 0x159] for i in range(0, len(ids), 5))
@@ -222,13 +222,13 @@ def test_frames_of_concurrent_commands_never_interleave(rig):
 def test_estop_refuses_motion_and_resume_re_enables(rig):
     walk_to(rig.driver, POSE)
     rig.driver.emergency_stop()
-    assert wait_until(lambda: rig.arm.estopped)
+    assert rig.until(lambda: rig.arm.estopped)
     with pytest.raises(EmergencyStopError, match="emergency stop engaged"):
         rig.driver.command(POSE)
-    assert wait_until(lambda: rig.driver.state().status.value.arm_status == codec.ArmStatusCode.EMERGENCY_STOP)
+    assert rig.until(lambda: rig.driver.state().status.value.arm_status == codec.ArmStatusCode.EMERGENCY_STOP)
     with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
         rig.driver.checked_state()
-    time.sleep(0.2)
+    rig.sleep(0.2)
     assert rig.arm.joints_rad[1] < POSE[1]  # damped, sinking slowly
     rig.driver.resume()
     assert rig.arm.enabled == (True,) * 6 and rig.arm.ctrl_mode == codec.CtrlMode.CAN
@@ -249,8 +249,8 @@ def test_estop_refuses_motion_and_resume_re_enables(rig):
 def test_firmware_error_bits_become_exceptions_naming_joint_and_fault(rig, inject, part, fault):
     with rig.emulator.locked() as arm:
         inject(arm)
-    assert wait_until(lambda: rig.driver.state().faults() != (), timeout=1.0)
-    time.sleep(0.05)  # let every frame kind report it
+    assert rig.until(lambda: rig.driver.state().faults() != (), timeout=1.0)
+    rig.sleep(0.05)  # let every frame kind report it
     with pytest.raises(FirmwareFaultError) as err:
         rig.driver.checked_state()
     assert any(f.part == part and f.fault == fault for f in err.value.faults), err.value.faults
@@ -265,7 +265,7 @@ def test_firmware_error_bits_become_exceptions_naming_joint_and_fault(rig, injec
 def test_disconnect_hold_keeps_the_arm_enabled_where_it_is(rig):
     walk_to(rig.driver, POSE)
     rig.driver.disconnect()
-    time.sleep(0.1)
+    rig.sleep(0.1)
     assert rig.arm.enabled == (True,) * 6
     assert rig.arm.joints_rad == pytest.approx(POSE, abs=1e-3)
 
@@ -289,7 +289,7 @@ def test_disconnect_rest_holds_when_the_pose_cannot_be_reached():
         walk_to(rig.driver, POSE)
         with rig.emulator.locked() as arm:
             arm.inject_fault("collision", 2)
-        assert wait_until(lambda: rig.driver.state().faults() != ())
+        assert rig.until(lambda: rig.driver.state().faults() != ())
         rig.driver.disconnect()
         assert rig.arm.enabled == (True,) * 6  # not dropped
         assert not rig.driver.is_connected
@@ -299,25 +299,25 @@ def test_disconnect_rest_holds_when_the_pose_cannot_be_reached():
 def test_resume_waits_out_the_firmwares_delayed_motor_off(rig):
     walk_to(rig.driver, POSE)
     rig.driver.emergency_stop()
-    assert wait_until(lambda: rig.arm.estopped)
+    assert rig.until(lambda: rig.arm.estopped)
     rig.drain()
     rig.driver.resume()
     resets = [m.timestamp for m in rig.drain() if m.arbitration_id == 0x150 and m.data[0] == 0x02]
     # The firmware switches the motors off 0.727 s after the reset: an arm "enabled" before that goes limp.
-    time.sleep(max(0.0, resets[0] + 0.85 - time.time()))
+    rig.sleep(max(0.0, resets[0] + 0.85 - rig.now()))
     assert rig.arm.enabled == (True,) * 6 and rig.arm.gripper_enabled
     walk_to(rig.driver, POSE)
 
 
 def test_a_command_is_refused_when_feedback_shows_a_disabled_motor(rig):
-    time.sleep(0.1)  # the handshake's last enable request (20 ms latency) has been applied
+    rig.sleep(0.1)  # the handshake's last enable request (20 ms latency) has been applied
     with rig.emulator.locked() as arm:
         arm.set_enabled(3, False)  # a driver that cut out, no host frame involved
-    assert wait_until(lambda: rig.driver.state().joints_enabled[2] is False)
+    assert rig.until(lambda: rig.driver.state().joints_enabled[2] is False)
     rig.drain()
     with pytest.raises(ArmNotReadyError, match=r"feedback shows joint_3 disabled \(limp\); command refused"):
         rig.driver.command(POSE)
-    time.sleep(0.02)
+    rig.sleep(0.02)
     assert motion_frames(rig.drain()) == []
 
 
@@ -327,7 +327,7 @@ def test_a_command_is_refused_when_feedback_shows_a_disabled_motor(rig):
 )
 def test_a_command_is_refused_when_the_arm_left_the_mode_we_set(rig, mode, reported):
     rig.monitor.send(can.Message(arbitration_id=0x151, data=mode.ljust(8, b"\0"), is_extended_id=False))  # another host
-    assert wait_until(lambda: codec_mode(rig.driver.state()) == (mode[0], mode[1]))
+    assert rig.until(lambda: codec_mode(rig.driver.state()) == (mode[0], mode[1]))
     rig.drain()
     with pytest.raises(ArmNotReadyError, match=reported):
         rig.driver.command(POSE)
@@ -363,12 +363,12 @@ def test_no_motion_frame_leaves_the_driver_after_an_emergency_stop(commanders, d
         threads = [threading.Thread(target=command_forever) for _ in range(commanders)]
         for t in threads:
             t.start()
-        time.sleep(delay_s)
+        rig.sleep(delay_s)
         rig.driver.emergency_stop()
         stopped_at.append(time.monotonic())
         for t in threads:
             t.join()
-        time.sleep(0.02)
+        rig.sleep(0.02)
         frames = rig.drain()
     ids = [m.arbitration_id for m in frames if m.arbitration_id in (0x150, 0x151, *codec.ID_JOINT_COMMAND, 0x159)]
     estop = [i for i, m in enumerate(frames) if m.arbitration_id == 0x150 and m.data[0] == 0x01]
@@ -390,7 +390,7 @@ def test_position_mode_after_high_follow_resets_old_firmware_first():
         assert rig.arm.mit_mode == 0x00 and rig.arm.speed_percent == 50  # position mode really taken
         assert any(m.arbitration_id == 0x150 and m.data[0] == 0x02 for m in rig.drain())
         assert rig.arm.enabled == (True,) * 6
-        time.sleep(0.1)
+        rig.sleep(0.1)
         walk_to(rig.driver, POSE)
 
 
@@ -434,7 +434,7 @@ def codec_fault(part: str, fault: str) -> Fault:
 def test_clear_errors_brings_a_collided_arm_back_without_cutting_the_motors(rig, caplog):
     with rig.emulator.locked() as arm:
         arm.inject_fault("collision", 3)
-    assert wait_until(lambda: rig.driver.state().faults() != ())
+    assert rig.until(lambda: rig.driver.state().faults() != ())
     with pytest.raises(FirmwareFaultError, match="arm: collision"):
         rig.driver.command(POSE)
     assert rig.driver.clear_errors() == ()
@@ -447,7 +447,7 @@ def test_clear_errors_brings_a_collided_arm_back_without_cutting_the_motors(rig,
 def test_enable_brings_an_arm_e_stopped_by_someone_else_back_only_when_asked(recovery):
     with make_rig(connect=False, recovery=recovery) as rig:
         rig.monitor.send(can.Message(arbitration_id=0x150, data=bytes([1]).ljust(8, b"\0"), is_extended_id=False))
-        assert wait_until(lambda: rig.arm.estopped)
+        assert rig.until(lambda: rig.arm.estopped)
         rig.driver.connect()
         if recovery == "none":
             with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
@@ -461,21 +461,22 @@ def test_enable_brings_an_arm_e_stopped_by_someone_else_back_only_when_asked(rec
 HEALTHY = "faults: none; mode CAN/J; enabled joints 1-6 + gripper: 1111111"
 
 
-def test_piper_recover_cli_reports_and_resets(rig, capsys):
-    with rig.emulator.locked() as arm:
-        arm.inject_fault("comm_error", 4)
-    assert wait_until(lambda: rig.driver.state().faults() != ())
-    args = ["--interface=virtual", f"--channel={rig.channel}", "--feedback-timeout-s=0.1"]
-    assert recover_cli.main(args) == 0
-    assert "joint_4: communication error" in capsys.readouterr().out
-    assert recover_cli.main([*args, "--clear-errors"]) == 0
-    out = capsys.readouterr().out.splitlines()
-    assert "joint_4: communication error" in out[0] and out[1].endswith(HEALTHY)
-    with rig.emulator.locked() as arm:
-        arm.inject_fault("stall", 2)
-    assert recover_cli.main([*args, "--reset"]) == 0
-    assert capsys.readouterr().out.splitlines()[1].endswith(HEALTHY)
-    assert rig.arm.enabled == (True,) * 6
+def test_piper_recover_cli_reports_and_resets(capsys):
+    with make_rig(real_time=True) as rig:  # piper-recover runs its own driver on the wall clock
+        with rig.emulator.locked() as arm:
+            arm.inject_fault("comm_error", 4)
+        assert rig.until(lambda: rig.driver.state().faults() != ())
+        args = ["--interface=virtual", f"--channel={rig.channel}", "--feedback-timeout-s=0.1"]
+        assert recover_cli.main(args) == 0
+        assert "joint_4: communication error" in capsys.readouterr().out
+        assert recover_cli.main([*args, "--clear-errors"]) == 0
+        out = capsys.readouterr().out.splitlines()
+        assert "joint_4: communication error" in out[0] and out[1].endswith(HEALTHY)
+        with rig.emulator.locked() as arm:
+            arm.inject_fault("stall", 2)
+        assert recover_cli.main([*args, "--reset"]) == 0
+        assert capsys.readouterr().out.splitlines()[1].endswith(HEALTHY)
+        assert rig.arm.enabled == (True,) * 6
 
 
 def test_piper_recover_cli_errors_are_one_line(capsys):
@@ -494,7 +495,7 @@ def test_firmware_limits_narrow_the_soft_limits_and_a_mismatch_is_reported(caplo
             caplog.text
         )
         assert rig.driver.command([2.0, 0.1, 0.0, 0.0, 0.0, 0.0]).joints_rad[0] == tight
-        assert wait_until(lambda: rig.arm.joints_rad[0] == pytest.approx(tight, abs=1e-5))
+        assert rig.until(lambda: rig.arm.joints_rad[0] == pytest.approx(tight, abs=1e-5))
         assert rig.arm.ignored["out of range"] == 0  # the firmware never had to reject a target
 
 
@@ -509,13 +510,13 @@ def test_missing_firmware_limits_are_reported_and_the_soft_limits_kept(caplog):
 # ---------------------------------------------------- watchdog re-arm, error frames, partial sends (issue 12.6)
 def test_the_watchdog_rearms_only_after_fresh_feedback(rig):
     rig.arm.silent = True
-    assert wait_until(lambda: rig.driver.link.stale_error is not None)
+    assert rig.until(lambda: rig.driver.link.stale_error is not None)
     with pytest.raises(FeedbackStaleError, match="cannot re-arm the watchdog .*: still no fresh 0x2A5, 0x2A6"):
         rig.driver.rearm_watchdog()
     with pytest.raises(FeedbackStaleError):
         rig.driver.command(POSE)
     rig.arm.silent = False
-    assert wait_until(lambda: _rearmed(rig.driver))
+    assert rig.until(lambda: _rearmed(rig.driver))
     walk_to(rig.driver, POSE)
 
 
@@ -530,7 +531,7 @@ def _rearmed(driver: PiperDriver) -> bool:
 @pytest.mark.parametrize("frame_id", [0x2A1, 0x2A8, 0x263])
 def test_status_gripper_and_driver_info_frames_are_watched_too(rig, frame_id):
     rig.arm.drop_ids = {frame_id}
-    assert wait_until(lambda: rig.driver.link.stale_error is not None)
+    assert rig.until(lambda: rig.driver.link.stale_error is not None)
     assert f"no feedback frame 0x{frame_id:X}" in str(rig.driver.link.stale_error)
     with pytest.raises(FeedbackStaleError):
         rig.driver.command(POSE)
@@ -539,11 +540,11 @@ def test_status_gripper_and_driver_info_frames_are_watched_too(rig, frame_id):
 def test_bus_off_is_an_error_and_other_error_frames_are_counted(rig, caplog):
     lost_arbitration = can.Message(arbitration_id=0x002, is_error_frame=True, data=bytes(8))
     rig.monitor.send(lost_arbitration)
-    assert wait_until(lambda: rig.driver.link.error_frames["lost arbitration"] == 1)
+    assert rig.until(lambda: rig.driver.link.error_frames["lost arbitration"] == 1)
     rig.driver.command(POSE)  # a warning, not a stop
     assert "CAN error frame: lost arbitration" in caplog.text
     rig.monitor.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8)))
-    assert wait_until(lambda: rig.driver.link.bus_error is not None)
+    assert rig.until(lambda: rig.driver.link.bus_error is not None)
     rig.drain()
     with pytest.raises(CanBusError, match=f"CAN bus-off on virtual:{rig.channel}"):
         rig.driver.command(POSE)
