@@ -8,6 +8,7 @@ from functools import cached_property
 from lerobot.cameras import make_cameras_from_configs
 from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+from piper_can.clock import SYSTEM_CLOCK, Clock
 from piper_can.codec import MIT_MODE_HIGH_FOLLOW
 from piper_can.driver import PiperDriver
 from piper_can.errors import ArmNotReadyError
@@ -28,7 +29,8 @@ class PiperFollower(Robot):
     config_class = PiperFollowerConfig
     name = "piper_follower"
 
-    def __init__(self, config: PiperFollowerConfig):
+    def __init__(self, config: PiperFollowerConfig, clock: Clock = SYSTEM_CLOCK):
+        """``clock``: the system's (LeRobot's CLIs), or a ``SimulatedClock`` in tests."""
         super().__init__(config)
         self.config = config
         if config.motion_mode_from is not None:
@@ -37,7 +39,7 @@ class PiperFollower(Robot):
                 raise ValueError(f"no PiPER motion mode recorded for {config.motion_mode_from} (meta/info.json)")
             log.info("%s: deploying in the recorded motion mode %s", self, recorded)
             config.motion_mode, config.speed_percent = recorded.motion_mode, recorded.speed_percent
-        self.driver = PiperDriver(config.driver_config())
+        self.driver = PiperDriver(config.driver_config(), clock)
         self.cameras = make_cameras_from_configs(config.cameras)
 
     @cached_property

@@ -7,6 +7,7 @@ from functools import cached_property
 
 from lerobot.teleoperators.teleoperator import Teleoperator
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+from piper_can.clock import SYSTEM_CLOCK, Clock
 from piper_can.codec import ID_GRIPPER_COMMAND, ID_GRIPPER_FEEDBACK, ID_JOINT_COMMAND, ID_JOINT_FEEDBACK
 from piper_can.errors import FeedbackStaleError
 from piper_can.link import PiperLink
@@ -23,7 +24,8 @@ class PiperLeader(Teleoperator):
     config_class = PiperLeaderConfig
     name = "piper_leader"
 
-    def __init__(self, config: PiperLeaderConfig):
+    def __init__(self, config: PiperLeaderConfig, clock: Clock = SYSTEM_CLOCK):
+        """``clock``: the system's (LeRobot's CLIs), or a ``SimulatedClock`` in tests."""
         super().__init__(config)
         self.config = config
         control = config.source == "control"
@@ -36,6 +38,7 @@ class PiperLeader(Teleoperator):
             {} if config.port is None else {"port": config.port},
             watch=dict.fromkeys(self._joint_ids, config.timeout_s),
             watch_name="leader joint frame" if control else "leader joint feedback",
+            clock=clock,
         )
 
     @cached_property

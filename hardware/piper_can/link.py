@@ -298,11 +298,13 @@ class PiperLink:
     @property
     def stale_error(self) -> FeedbackStaleError | None:
         """The watchdog's error once tripped (it stays tripped until ``rearm``)."""
+        self.poll()
         return self._stale
 
     @property
     def bus_error(self) -> CanBusError | None:
         """Bus-off, once the controller reported it (it stays until ``rearm``)."""
+        self.poll()
         return self._bus_error
 
     def raise_if_unhealthy(self) -> None:

@@ -7,7 +7,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 from dataclasses import fields
 from pathlib import Path
 
@@ -23,50 +22,70 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig
 from lerobot_robot_piper.motion_metadata import MotionMode, read_motion_mode, write_motion_mode
 from piper_can import codec
+from piper_can.clock import SimulatedClock
 from piper_can.driver import DriverSettings
 from piper_can.emulator import PiperEmulator
 from piper_can.errors import FeedbackStaleError, FirmwareFaultError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
-from piper_rig import unique_virtual_channel, wait_until
+from piper_rig import unique_virtual_channel
 
 KEYS = ["joint_1.pos", "joint_2.pos", "joint_3.pos", "joint_4.pos", "joint_5.pos", "joint_6.pos", "gripper.pos"]
 LEADER_POSE = ((0.3, 0.5, -0.4, 0.1, 0.2, -0.3), 0.04)
 
 
 class Arm:
-    """An emulated PiPER in real time on its own bus."""
+    """An emulated PiPER on its own bus, stepped by the simulated clock every 5 ms."""
 
-    def __init__(self, channel: str, config: EmulatorConfig | None = None):
+    def __init__(self, channel: str, clock: SimulatedClock, config: EmulatorConfig | None = None):
         self.bus = can.Bus(interface="virtual", channel=channel)
-        self.emulator = PiperEmulator(self.bus, config)
+        self.emulator = PiperEmulator(self.bus, config, clock)
         self.firmware = self.emulator.firmware
-        self.emulator.start()
+        clock.every(self.firmware.config.period_s, self.emulator.step)
 
     def close(self) -> None:
-        self.emulator.stop()
         self.bus.shutdown()
+
+
+class Sim:
+    """One simulated clock for the test's arms, robots and teleoperators (exact times, no threads)."""
+
+    def __init__(self) -> None:
+        self.clock = SimulatedClock()
+        self.made: list[Arm] = []
+
+    def __call__(self, channel: str, config: EmulatorConfig | None = None) -> Arm:
+        self.made.append(Arm(channel, self.clock, config))
+        return self.made[-1]
+
+    def follower(self, config: PiperFollowerConfig) -> PiperFollower:
+        return PiperFollower(config, self.clock)
+
+    def leader(self, config: PiperLeaderConfig) -> PiperLeader:
+        return PiperLeader(config, self.clock)
+
+    def until(self, condition, timeout: float = 2.0) -> bool:
+        """Let simulated time pass in 1 ms steps until ``condition()`` holds."""
+        deadline = self.clock.time() + timeout
+        while self.clock.time() < deadline:
+            if condition():
+                return True
+            self.clock.sleep(0.001)
+        return condition()
 
 
 @pytest.fixture
 def arms():
-    made: list[Arm] = []
-
-    def make(channel: str, config: EmulatorConfig | None = None) -> Arm:
-        made.append(Arm(channel, config))
-        return made[-1]
-
-    yield make
-    for arm in made:
+    sim = Sim()
+    yield sim
+    for arm in sim.made:
         arm.close()
 
 
 def follower_config(channel: str, tmp_path, **kw) -> PiperFollowerConfig:
-    kw.setdefault("feedback_timeout_s", 0.5)  # the emulators share this process (and a busy machine)
     return PiperFollowerConfig(interface="virtual", channel=channel, calibration_dir=tmp_path, **kw)
 
 
 def leader_config(channel: str, tmp_path, **kw) -> PiperLeaderConfig:
-    kw.setdefault("timeout_s", 0.5)
     return PiperLeaderConfig(interface="virtual", channel=channel, calibration_dir=tmp_path, **kw)
 
 
@@ -113,7 +132,7 @@ def test_bad_follower_settings_are_refused(tmp_path, kw, match):
 def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel)
-    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot = arms.follower(follower_config(channel, tmp_path))
     robot.connect()
     try:
         with pytest.raises(DeviceAlreadyConnectedError):
@@ -127,7 +146,7 @@ def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
         assert [sent[k] for k in KEYS] == pytest.approx([0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 0.07])
         near = dict(zip(KEYS, (0.1, 0.1, -0.1, 0.0, 0.0, 0.0, 0.01), strict=True))
         assert robot.send_action(near) == pytest.approx(near)
-        assert wait_until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
+        assert arms.until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
         with pytest.raises(ValueError, match="missing gripper.pos"):
             robot.send_action({k: 0.0 for k in KEYS[:6]})
     finally:
@@ -139,7 +158,7 @@ def test_per_key_max_relative_target(arms, tmp_path):
     channel = unique_virtual_channel()
     arms(channel)
     cap = dict(zip(KEYS, (0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.001), strict=True))
-    robot = PiperFollower(follower_config(channel, tmp_path, max_relative_target=cap))
+    robot = arms.follower(follower_config(channel, tmp_path, max_relative_target=cap))
     robot.connect()
     try:
         sent = robot.send_action(dict(zip(KEYS, (1.0, 1.0, -1.0, 1.0, 1.0, 1.0, 0.05), strict=True)))
@@ -152,14 +171,14 @@ def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel, EmulatorConfig(role="leader"))
     arm.firmware.leader_pose = LEADER_POSE
-    leader = PiperLeader(leader_config(channel, tmp_path))
+    leader = arms.leader(leader_config(channel, tmp_path))
     leader.connect()
     try:
         action = leader.get_action()
         expected = [*LEADER_POSE[0], LEADER_POSE[1]]
         assert list(action) == KEYS and [action[k] for k in KEYS] == pytest.approx(expected, abs=1e-5)
         arm.firmware.silent = True  # unplugged
-        assert wait_until(lambda: leader.link.stale_error is not None, timeout=1.0)
+        assert arms.until(lambda: leader.link.stale_error is not None, timeout=1.0)
         with pytest.raises(FeedbackStaleError, match="no leader joint frame 0x15"):
             leader.get_action()
     finally:
@@ -169,12 +188,12 @@ def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):
 def test_leader_moved_by_hand_is_read_from_its_feedback(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel)  # an ordinary arm, disabled: it can be moved by hand
-    leader = PiperLeader(leader_config(channel, tmp_path, source="feedback"))
+    leader = arms.leader(leader_config(channel, tmp_path, source="feedback"))
     leader.connect()
     try:
         with arm.emulator.locked() as firmware:
             firmware.set_position(1, 0.5)
-        assert wait_until(lambda: leader.get_action()["joint_1.pos"] == pytest.approx(0.5, abs=1e-5))
+        assert arms.until(lambda: leader.get_action()["joint_1.pos"] == pytest.approx(0.5, abs=1e-5))
     finally:
         leader.disconnect()
 
@@ -185,19 +204,19 @@ def test_hardware_linked_leader_drives_the_follower_and_the_pc_only_listens(arms
     leader_arm = arms(channel, EmulatorConfig(role="leader"))
     leader_arm.firmware.leader_pose = LEADER_POSE
     monitor = can.Bus(interface="virtual", channel=channel)
-    robot = PiperFollower(follower_config(channel, tmp_path, hardware_linked_leader=True))
-    teleop = PiperLeader(leader_config(channel, tmp_path))
+    robot = arms.follower(follower_config(channel, tmp_path, hardware_linked_leader=True))
+    teleop = arms.leader(leader_config(channel, tmp_path))
     try:
         teleop.connect()
         robot.connect()
         expected = pytest.approx([*LEADER_POSE[0], LEADER_POSE[1]], abs=1e-4)
-        deadline = time.monotonic() + 3.0
+        deadline = arms.clock.time() + 3.0
         while [robot.get_observation()[k] for k in KEYS] != expected:
-            assert time.monotonic() < deadline, robot.get_observation()
+            assert arms.clock.time() < deadline, robot.get_observation()
             action = teleop.get_action()
             assert robot.send_action(action) == action
             robot.send_action(dict.fromkeys(KEYS, 0.01))  # would be visible on the bus if it were sent
-            time.sleep(0.01)
+            arms.clock.sleep(0.01)
     finally:
         robot.disconnect()
         teleop.disconnect()
@@ -249,7 +268,7 @@ def test_no_assert_statements_in_the_hardware_packages():
 def test_radians_are_the_unit(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel, EmulatorConfig(initial_pose_rad=(math.radians(30), 0.5, -0.5, 0.0, 0.0, 0.0)))
-    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot = arms.follower(follower_config(channel, tmp_path))
     robot.connect()
     try:
         assert robot.get_observation()["joint_1.pos"] == pytest.approx(math.radians(30), abs=1e-5)
@@ -281,7 +300,7 @@ def test_camera_frames_join_the_observation(arms, tmp_path):
     channel = unique_virtual_channel()
     arms(channel)
     cam = OpenCVCameraConfig(index_or_path=0, width=64, height=48, fps=30)
-    robot = PiperFollower(follower_config(channel, tmp_path, cameras={"cam_high": cam}))
+    robot = arms.follower(follower_config(channel, tmp_path, cameras={"cam_high": cam}))
     robot.cameras["cam_high"] = stub = StubCamera(48, 64)
     robot.connect()
     try:
@@ -296,12 +315,12 @@ def test_camera_frames_join_the_observation(arms, tmp_path):
 def test_follower_connects_to_an_arm_just_past_a_limit_and_moves_it_back(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel, EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0)))
-    robot = PiperFollower(follower_config(channel, tmp_path))
+    robot = arms.follower(follower_config(channel, tmp_path))
     robot.connect()  # J2 at -0.02 rad (limit 0): logged, not refused
     try:
         assert robot.get_observation()["joint_2.pos"] == pytest.approx(-0.02, abs=1e-5)
         action = dict(zip(KEYS, (0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0), strict=True))
-        assert wait_until(lambda: robot.send_action(action) and arm.firmware.joints_rad[1] > 0.05)
+        assert arms.until(lambda: robot.send_action(action) and arm.firmware.joints_rad[1] > 0.05)
         assert robot.driver.state().faults() == ()
     finally:
         robot.disconnect()
@@ -313,8 +332,8 @@ def test_follower_recovery_setting_brings_an_e_stopped_arm_back_on_connect(arms,
     with arm.emulator.locked() as firmware:
         firmware.handle(codec.encode(codec.EmergencyStop(codec.EStopAction.STOP)))
     with pytest.raises(FirmwareFaultError, match="arm: emergency stop"):
-        PiperFollower(follower_config(channel, tmp_path)).connect()
-    robot = PiperFollower(follower_config(channel, tmp_path, recovery="reset"))
+        arms.follower(follower_config(channel, tmp_path)).connect()
+    robot = arms.follower(follower_config(channel, tmp_path, recovery="reset"))
     robot.connect()
     try:
         assert not arm.firmware.estopped and arm.firmware.enabled == (True,) * 6
@@ -323,21 +342,21 @@ def test_follower_recovery_setting_brings_an_e_stopped_arm_back_on_connect(arms,
 
 
 def test_velocity_and_torque_observations_are_optional(arms, tmp_path):
-    assert "joint_1.vel" not in PiperFollower(follower_config("x", tmp_path)).observation_features
+    assert "joint_1.vel" not in arms.follower(follower_config("x", tmp_path)).observation_features
     channel = unique_virtual_channel()
     arm = arms(channel)
-    robot = PiperFollower(follower_config(channel, tmp_path, use_velocity_and_torque=True))
+    robot = arms.follower(follower_config(channel, tmp_path, use_velocity_and_torque=True))
     extra = [f"joint_{j}.{kind}" for kind in ("vel", "torque") for j in range(1, 7)]
     assert list(robot.observation_features) == [*KEYS, *extra]
     robot.connect()
     try:
         action = dict(zip(KEYS, (0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), strict=True))
-        assert wait_until(lambda: robot.send_action(action) and robot.get_observation()["joint_1.vel"] > 0.5)
+        assert arms.until(lambda: robot.send_action(action) and robot.get_observation()["joint_1.vel"] > 0.5)
         obs = robot.get_observation()
         assert list(obs) == [*KEYS, *extra]
         # The emulator draws 0.2 A + 0.5 A per rad/s; J4..J6 have the smaller torque constant.
         assert obs["joint_4.torque"] == pytest.approx(0.2 * 0.95844, abs=1e-3)
-        assert wait_until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.2, abs=1e-4))
+        assert arms.until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.2, abs=1e-4))
     finally:
         robot.disconnect()
 
@@ -356,7 +375,7 @@ def test_the_recorded_motion_mode_round_trips_and_deploys_by_request(arms, tmp_p
 
     channel = unique_virtual_channel()
     arm = arms(channel)
-    robot = PiperFollower(follower_config(channel, tmp_path, motion_mode_from=str(policy)))
+    robot = arms.follower(follower_config(channel, tmp_path, motion_mode_from=str(policy)))
     assert robot.motion_mode == MotionMode("high_follow", 100)
     robot.connect()
     try:
@@ -364,16 +383,16 @@ def test_the_recorded_motion_mode_round_trips_and_deploys_by_request(arms, tmp_p
     finally:
         robot.disconnect()
     with pytest.raises(ValueError, match="no PiPER motion mode recorded for"):
-        PiperFollower(follower_config(channel, tmp_path, motion_mode_from=str(tmp_path)))
+        arms.follower(follower_config(channel, tmp_path, motion_mode_from=str(tmp_path)))
 
 
 def test_a_hardware_linked_follower_reports_the_leaders_motion_mode(arms, tmp_path):
     channel = unique_virtual_channel()
     arms(channel, EmulatorConfig(start_enabled=True))
     arms(channel, EmulatorConfig(role="leader"))
-    robot = PiperFollower(follower_config(channel, tmp_path, hardware_linked_leader=True))
+    robot = arms.follower(follower_config(channel, tmp_path, hardware_linked_leader=True))
     robot.connect()
     try:
-        assert wait_until(lambda: robot.motion_mode == MotionMode("high_follow", 100))
+        assert arms.until(lambda: robot.motion_mode == MotionMode("high_follow", 100))
     finally:
         robot.disconnect()
