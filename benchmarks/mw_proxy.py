@@ -28,8 +28,8 @@ import draccus
 import matplotlib
 import numpy as np
 
-from lerobot_cso.checkpoints import write_atomic
 from lerobot_cso.cso.spo import run_spo
+from lerobot_cso.durable import write_atomic
 from lerobot_cso.evaluation import evaluate
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 

@@ -28,6 +28,7 @@ import torch
 
 from lerobot_cso.demos import DemosConfig, generate_demos
 from lerobot_cso.envs import seeds
+from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.rollout.engine import RolloutEngine, Sampling
 from lerobot_cso.rollout.expert import ExpertController
 from lerobot_cso.rollout.pool import EnvPool, Job
@@ -124,7 +125,11 @@ def main() -> None:
     with (
         EnvPool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
         RolloutEngine(
-            policy, pre, post, num_envs=args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization
+            policy,
+            pre,
+            post,
+            EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization),
+            task_description,
         ) as engine,
     ):
         expert_round(pool, expert_jobs[:: args.expert_episodes])  # warm-up: build every task's models

@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from lerobot_cso.checkpoints import load_policy
-from lerobot_cso.cso.spo import SPO_SEED_OFFSET
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.tasks import resolve_tasks
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+from lerobot_cso.rollout.pool import EnvPool
 
 
 def main() -> int:
@@ -41,10 +41,11 @@ def main() -> int:
     tasks = resolve_tasks(args.tasks)
     policy, pre, post = load_policy(args.policy_path)
     # The last states of the SPO half of the training range: SPO's own runs start from its first ones.
-    first = SPO_SEED_OFFSET + len(seeds.TRAIN) // 2 - args.states
-    states = [(t, s) for t in tasks for s in seeds.train_seeds(args.states, first)]
+    first = len(seeds.TRAIN) // 2 - args.states
+    states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, args.states)]
     sampling = Sampling(temperature=args.temperature, top_k=args.top_k)
-    with RolloutEngine(policy, pre, post, num_envs=args.num_envs, max_steps=args.max_steps) as engine:
+    pool = EnvPool(args.num_envs, max_steps=args.max_steps)
+    with RolloutEngine(policy, pre, post, pool, task_description) as engine:
         result = engine.rollout(states, k=args.k, sampling=sampling, seed=7, progress="diagnosis")
     report = {"policy": str(args.policy_path), "k": args.k, "sampling": vars(sampling), "tasks": {}}
     for task in tasks:

@@ -1,8 +1,7 @@
-"""Loading and saving cso checkpoints (policy + processors) the LeRobot way, and atomic file writes."""
+"""Loading and saving cso checkpoints (policy + processors) the LeRobot way."""
 
 from __future__ import annotations
 
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +11,7 @@ from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import make_pre_post_processors
 
+from lerobot_cso.durable import replace_dir
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
 
@@ -58,30 +58,3 @@ def save_checkpoint(directory: Path, policy: CSOPolicy, preprocessor: Any, postp
     preprocessor.save_pretrained(tmp)
     postprocessor.save_pretrained(tmp)
     replace_dir(tmp, directory)
-
-
-def replace_dir(src: Path, dst: Path) -> None:
-    """Move directory ``src`` to ``dst``, replacing it; a crash leaves either the old or the new one."""
-    old = dst.with_name(dst.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if dst.exists():
-        os.replace(dst, old)
-    os.replace(src, dst)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def restore_interrupted_replace(dst: Path) -> None:
-    """Undo a :func:`replace_dir` killed between its two renames."""
-    old = dst.with_name(dst.name + ".old")
-    if not dst.exists() and old.exists():
-        os.replace(old, dst)
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write a file so that readers see the old content or the new, never a torn one."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)

@@ -14,15 +14,15 @@ and ``metaworld.success`` (the episode's outcome). The episode length is LeRobot
 generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other
 settings, or anything else, is refused.
 
-Durability: every finished episode is written at once, atomically, to ``<output_dir>.partial/``; the
-dataset is assembled from there when all episodes exist (appended with ``LeRobotDataset.resume`` when
-topping up an existing dataset) and swapped into place. A killed run restarts where it stopped: episodes
+Durability: every finished episode is written at once, atomically, to ``<output_dir>.partial/`` (an
+:class:`~lerobot_cso.durable.EpisodeJournal`); the dataset is assembled from there when all episodes exist
+(appended with ``LeRobotDataset.resume`` when topping up an existing dataset) and swapped into place
+(:func:`~lerobot_cso.durable.replace_dir`). A killed run restarts where it stopped: episodes
 already staged or already in the dataset (matched by task and initial-state seed) are never rerun or
 duplicated.
 """
 
 import json
-import os
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -35,6 +35,7 @@ from lerobot.configs import parser
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
+from lerobot_cso.durable import EpisodeJournal, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.config import parse_cameras
 from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
@@ -116,51 +117,19 @@ def dataset_features(cameras: Iterable[str], image_size: int) -> dict[str, dict]
     return features
 
 
-class _Staging:
-    """``<output_dir>.partial/``: one atomically written ``.npz`` per finished episode, plus the spec."""
-
-    def __init__(self, output_dir: Path, spec: dict[str, Any]) -> None:
-        self.root = output_dir.with_name(output_dir.name + ".partial")
-        self.episodes = self.root / "episodes"
-        spec_path = self.root / "spec.json"
-        if spec_path.exists() and json.loads(spec_path.read_text()) != spec:
-            raise UsageError(
-                f"{self.root} holds an interrupted generation with different settings "
-                f"({json.loads(spec_path.read_text())}); delete it or choose another --output_dir"
-            )
-        self.episodes.mkdir(parents=True, exist_ok=True)
-        _write_atomic(spec_path, json.dumps(spec, indent=2).encode())
-
-    def path(self, task: str, init_seed: int) -> Path:
-        return self.episodes / task / f"{init_seed:07d}.npz"
-
-    def done(self) -> dict[tuple[str, int], bool]:
-        """(task, init_seed) → success of every staged episode."""
-        out = {}
-        for path in self.episodes.glob("*/*.npz"):
-            with np.load(path) as data:
-                out[(path.parent.name, int(path.stem))] = bool(data["success"])
-        return out
-
-    def save(self, task: str, init_seed: int, success: bool, arrays: dict[str, np.ndarray]) -> None:
-        path = self.path(task, init_seed)
-        path.parent.mkdir(exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        with open(tmp, "wb") as f:
-            np.savez(f, success=np.array(success), **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-
-    def load(self, task: str, init_seed: int) -> dict[str, np.ndarray]:
-        with np.load(self.path(task, init_seed)) as data:
-            return dict(data)
+def _staging(cfg: DemosConfig) -> EpisodeJournal:
+    """``<output_dir>.partial/``: one ``.npz`` per finished episode (``episodes/<task>/<seed>.npz``)."""
+    root = cfg.output_dir.with_name(cfg.output_dir.name + ".partial")
+    return EpisodeJournal(root, cfg.spec(), what="an interrupted generation")
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+def _staged(staging: EpisodeJournal) -> dict[tuple[str, int], bool]:
+    """(task, init_seed) → success of every staged episode."""
+    out = {}
+    for path in staging.episode_files():
+        with np.load(path) as data:
+            out[(path.parent.name, int(path.stem))] = bool(data["success"])
+    return out
 
 
 def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
@@ -205,7 +174,9 @@ def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[
     return jobs
 
 
-def _generate(cfg: DemosConfig, tasks: list[str], staging: _Staging, known: dict[tuple[str, int], bool]) -> None:
+def _generate(
+    cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, known: dict[tuple[str, int], bool]
+) -> None:
     """Run episodes until every task has its count (staged + in the dataset); each one is staged at once."""
     from lerobot_cso.rollout.expert import ExpertController
     from lerobot_cso.rollout.pool import EnvPool, Job
@@ -215,15 +186,17 @@ def _generate(cfg: DemosConfig, tasks: list[str], staging: _Staging, known: dict
         while jobs := _plan(tasks, cfg.episodes_per_task, cfg.keep_failed, known):
             controller = ExpertController(cfg.num_envs, cfg.noise_std, cfg.seed)
             for _, trace in pool.run([Job(t, s) for t, s in jobs], controller, progress="demo episodes"):
-                arrays = {"states": trace.states, "actions": trace.actions}
+                arrays = {"success": np.array(trace.success), "states": trace.states, "actions": trace.actions}
                 arrays.update({f"image_{cam}": frames for cam, frames in trace.images.items()})
-                staging.save(trace.job.task, trace.job.init_seed, trace.success, arrays)
+                staging.save_episode(trace.job.task, f"{trace.job.init_seed:07d}", arrays)
                 known[(trace.job.task, trace.job.init_seed)] = trace.success
 
 
-def _assemble(cfg: DemosConfig, tasks: list[str], staging: _Staging, in_dataset: set[tuple[str, int]]) -> int:
+def _assemble(
+    cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_dataset: set[tuple[str, int]]
+) -> int:
     """Write the staged episodes (task order, then seed order) into the dataset; returns how many."""
-    staged = staging.done()
+    staged = _staged(staging)
     keys = [
         (task, s)
         for task in tasks
@@ -255,7 +228,7 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: _Staging, in_dataset:
     hf_logging.disable_progress_bar()  # one "Map" bar per saved episode otherwise
     try:
         for task, init_seed in tqdm(keys, desc="writing dataset", leave=False):
-            ep = staging.load(task, init_seed)
+            ep = staging.load(staging.episode_path(task, f"{init_seed:07d}"))
             meta = {
                 TASK_KEY: task,
                 SEED_KEY: np.array([init_seed], dtype=np.int64),
@@ -274,23 +247,18 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: _Staging, in_dataset:
     finally:
         if bars_were_enabled:
             hf_logging.enable_progress_bar()
-    _write_atomic(work / SPEC_FILE, json.dumps(cfg.spec(), indent=2).encode())
-    previous = staging.root / "previous"
-    if cfg.output_dir.exists():
-        os.replace(cfg.output_dir, previous)
-    os.replace(work, cfg.output_dir)
+    write_json(work / SPEC_FILE, cfg.spec())
+    replace_dir(work, cfg.output_dir)
     return len(keys)
 
 
 def generate_demos(cfg: DemosConfig) -> dict[str, Any]:
     """Generate (or resume / top up) the demo dataset; returns a summary per task."""
     tasks = cfg.validate()
-    staging_root = cfg.output_dir.with_name(cfg.output_dir.name + ".partial")
-    if not cfg.output_dir.exists() and (staging_root / "previous").exists():
-        os.replace(staging_root / "previous", cfg.output_dir)  # killed between the two renames of a swap
+    restore_interrupted_replace(cfg.output_dir)
     in_dataset = existing_episodes(cfg)
-    staging = _Staging(cfg.output_dir, cfg.spec())
-    known = {**staging.done(), **in_dataset}
+    staging = _staging(cfg)
+    known = {**_staged(staging), **in_dataset}
     _generate(cfg, tasks, staging, known)
     written = _assemble(cfg, tasks, staging, set(in_dataset))
     shutil.rmtree(staging.root)

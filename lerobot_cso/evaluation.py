@@ -1,9 +1,10 @@
-"""``lerobot-cso eval``: per-task success rates of a policy on MetaWorld, mean ± std over seeds.
+"""``lerobot-cso eval``: per-task success rates of a policy, mean ± std over seeds.
 
-Evaluation seed ``s`` fixes both the sampling RNG and a block of initial states of its own:
-episode ``i`` of a task starts from ``seeds.EVAL.start + s * seeds.EVAL_BLOCK + i``. The states are therefore
-fixed per seed (the same for every checkpoint), disjoint between seeds, and disjoint from every demo and
-training-rollout state (:mod:`lerobot_cso.envs.seeds`). The spread over seeds covers initial states and
+Evaluation seed ``s`` fixes both the sampling RNG and a block of initial states of its own, which the world
+chooses (:meth:`~lerobot_cso.rollout.world.World.eval_states`). On MetaWorld episode ``i`` of a task starts
+from ``seeds.EVAL.start + s * seeds.EVAL_BLOCK + i``: the states are fixed per seed (the same for every
+checkpoint), disjoint between seeds, and disjoint from every demo and training-rollout state
+(:mod:`lerobot_cso.envs.seeds`). The spread over seeds covers initial states and
 sampling, so it is meaningful even with greedy decoding.
 
 Default sampling is QueST's: top-k = 5 at temperature 1. The std is the sample std over seeds (ddof=1;
@@ -21,31 +22,18 @@ from typing import Any
 import numpy as np
 from lerobot.configs import parser
 
-from lerobot_cso.checkpoints import PolicyPathConfig
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import HORIZON
-from lerobot_cso.envs.tasks import all_tasks, resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
-from lerobot_cso.rollout.pool import VECTORIZATIONS
+from lerobot_cso.rollout_stage import RolloutStageConfig
 
 
 @dataclass
-class EvalConfig(PolicyPathConfig):
+class EvalConfig(RolloutStageConfig):
     """Settings of ``lerobot-cso eval`` (``--policy.path=... --tasks=MT10 --seeds=0,1,2``)."""
 
-    # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test.
     tasks: str = "ML45-train"
     episodes_per_task: int = 50
     # Comma list of evaluation seeds; each picks its own block of initial states and sampling RNG.
     seeds: str = "0"
-    temperature: float = 1.0
-    top_k: int | None = 5
-    greedy: bool = False
-    num_envs: int = 16
-    # processes (envs split over one worker process per core) | sync (this process) | async (a process per env)
-    vectorization: str = "processes"
-    max_steps: int = HORIZON
-    output_dir: Path | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -57,34 +45,17 @@ class EvalConfig(PolicyPathConfig):
             values = [int(s) for s in self.seeds.split(",") if s.strip()]
         except ValueError:
             raise UsageError(f"seeds must be a comma list of integers, got '{self.seeds}'") from None
-        n_blocks = len(seeds.EVAL) // seeds.EVAL_BLOCK
-        if not values or any(not 0 <= s < n_blocks for s in values) or len(set(values)) != len(values):
-            raise UsageError(f"seeds must be distinct integers in [0, {n_blocks}), got '{self.seeds}'")
+        n_seeds = self.world().eval_seeds
+        if not values or any(not 0 <= s < n_seeds for s in values) or len(set(values)) != len(values):
+            raise UsageError(f"seeds must be distinct integers in [0, {n_seeds}), got '{self.seeds}'")
         return values
 
     def validate(self) -> list[str]:
         """Check every setting; returns the resolved task list. Raises ``UsageError``."""
-        if self.policy is None or self.policy.pretrained_path is None:
-            raise UsageError("--policy.path is required (a directory written by save_pretrained)")
-        try:
-            tasks = resolve_tasks(self.tasks)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
-        if not 0 < self.episodes_per_task <= seeds.EVAL_BLOCK:
-            raise UsageError(f"episodes_per_task must be in [1, {seeds.EVAL_BLOCK}], got {self.episodes_per_task}")
-        if self.num_envs < 1:
-            raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
-        if self.vectorization not in VECTORIZATIONS:
-            raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
-        if not 1 <= self.max_steps <= HORIZON:
-            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
-        if self.temperature <= 0 or (self.top_k is not None and self.top_k < 1):
-            raise UsageError("temperature must be > 0 and top_k >= 1 (or null)")
-        known = getattr(self.policy, "tasks", None)  # the task strings a language/one-hot policy was trained on
-        unknown = [t for t in tasks if known and task_description(t) not in known]
-        if unknown:
-            trained = [t for t in all_tasks() if task_description(t) in known]
-            raise UsageError(f"the policy was not trained on {', '.join(unknown)}; it knows: {', '.join(trained)}")
+        tasks = super().validate()
+        most = self.world().eval_states_per_seed
+        if not 0 < self.episodes_per_task <= most:
+            raise UsageError(f"episodes_per_task must be in [1, {most}], got {self.episodes_per_task}")
         self.eval_seeds()
         return tasks
 
@@ -170,7 +141,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
-    from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+    from lerobot_cso.rollout.engine import RolloutEngine
 
     tasks = cfg.validate()
     eval_seed_list = cfg.eval_seeds()
@@ -180,15 +151,13 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     pre, post = make_pre_post_processors(
         policy.config, pretrained_path=str(path), preprocessor_overrides={"device_processor": {"device": device}}
     )
-    sampling = Sampling(cfg.temperature, cfg.top_k, cfg.greedy)
+    world = cfg.world()
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
     episodes, throughput = [], []
-    with RolloutEngine(
-        policy, pre, post, cfg.num_envs, max_steps=cfg.max_steps, vectorization=cfg.vectorization
-    ) as engine:
+    with RolloutEngine.for_stage(policy, pre, post, cfg) as engine:
         for s in eval_seed_list:
-            states = [(task, init) for task in tasks for init in seeds.eval_seeds(cfg.episodes_per_task, s)]
-            result = engine.rollout(states, k=1, sampling=sampling, seed=s, progress=f"eval seed {s}")
+            states = [(task, init) for task in tasks for init in world.eval_states(task, s, cfg.episodes_per_task)]
+            result = engine.rollout(states, k=1, sampling=cfg.sampling, seed=s, progress=f"eval seed {s}")
             for task in tasks:
                 success[task][s] = float(np.mean([e.success for e in result.episodes if e.task == task]))
             episodes += [
@@ -204,9 +173,9 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
         "tasks": tasks,
         "episodes_per_task": cfg.episodes_per_task,
         "seeds": eval_seed_list,
-        "sampling": asdict(sampling),
-        "max_steps": cfg.max_steps,
-        "initial_states": f"seeds.EVAL.start + seed * {seeds.EVAL_BLOCK} + episode (EVAL = {seeds.EVAL})",
+        "sampling": asdict(cfg.sampling),
+        "max_steps": cfg.horizon(),
+        "world": world.name,
         "throughput": throughput,
         "episodes": episodes,
     }

@@ -37,10 +37,10 @@ import yaml
 from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_cso.checkpoints import write_atomic
 from lerobot_cso.cso.rsft import RSFTConfig
 from lerobot_cso.cso.spo import SPOConfig
 from lerobot_cso.demos import DemosConfig
+from lerobot_cso.durable import write_atomic
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.evaluation import EvalConfig

@@ -131,7 +131,7 @@ class BanditEngine:
 def bandit_factory(answer, engines: list[BanditEngine] | None = None, failure_decisions: int = 6):
     """A ``make_engine`` for ``run_spo`` / ``run_rsft`` that builds bandit engines with this answer."""
 
-    def make(policy, preprocessor, postprocessor, **_: object) -> BanditEngine:
+    def make(policy, preprocessor, postprocessor, cfg: object) -> BanditEngine:
         engine = BanditEngine(answer, policy, preprocessor, postprocessor, failure_decisions)
         if engines is not None:
             engines.append(engine)

@@ -95,7 +95,9 @@ def test_bad_input_is_one_clear_error(policy_path, tmp_path, capsys, monkeypatch
     cases = {
         (): "error: --policy.path is required",
         ("--policy.path=/nonexistent/policy",): "is not a saved policy",
-        (f"--policy.path={policy_path}", "--tasks=door-open-v3"): "not trained on door-open-v3; it knows: button",
+        (f"--policy.path={policy_path}", "--tasks=door-open-v3"): (
+            "not trained on door-open-v3; it knows: 'Reach a goal position'; 'Press a button'"
+        ),
         (f"--policy.path={policy_path}", "--tasks=reach-v3", "--seeds=0,x"): "seeds must be a comma list of integers",
         (f"--policy.path={policy_path}", "--tasks=reach-v3", "--episodes_per_task=0"): "episodes_per_task must be in",
         (f"--policy.path={policy_path}", "--tasks=nope-v3"): "unknown MetaWorld task 'nope-v3'",

@@ -17,6 +17,7 @@ from cso_fakes import TASKS, save_tiny_metaworld_policy
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft, spo
+from lerobot_cso.rollout.engine import Sampling
 
 ITERATIONS = 12  # the stated budget: 12 iterations x 8 groups x K = 8
 
@@ -88,8 +89,7 @@ def test_rsft_learns_the_bandit(initial, tmp_path):
         batch_size=32,
         lr=1e-3,
         min_lr=1e-5,
-        temperature=1.0,
-        top_k=5,
+        sampling=Sampling(temperature=1.0, top_k=5),
     )
     cfg.policy = load_policy(path)[0].config
     cfg.policy.pretrained_path = path

@@ -11,6 +11,7 @@ import torch
 from gymnasium.vector import AsyncVectorEnv
 from metaworld_fixtures import load_policy, shared_policy
 
+from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.rollout.engine import Episode, RolloutEngine, Sampling
 from lerobot_cso.rollout.expert import ExpertController
 from lerobot_cso.rollout.pool import EnvPool, Job
@@ -35,7 +36,7 @@ def loaded(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def engine(loaded):
-    with RolloutEngine(*loaded, num_envs=3, max_steps=MAX_STEPS) as eng:
+    with RolloutEngine(*loaded, EnvPool(3, max_steps=MAX_STEPS), task_description) as eng:
         yield eng
 
 
@@ -57,7 +58,7 @@ def assert_same_episodes(a: list[Episode], b: list[Episode]) -> None:
 def test_greedy_rollouts_are_deterministic(loaded, engine):
     first = engine.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=0).episodes
     again = engine.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=5).episodes  # seed only drives sampling
-    with RolloutEngine(*loaded, num_envs=3, max_steps=MAX_STEPS) as fresh:
+    with RolloutEngine(*loaded, EnvPool(3, max_steps=MAX_STEPS), task_description) as fresh:
         other = fresh.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=0).episodes
     assert_same_episodes(first, again)
     assert_same_episodes(first, other)
@@ -119,7 +120,7 @@ def test_async_env_workers_give_the_same_episodes_as_sync():
 
 
 def test_camera_frames_are_recorded_per_step(loaded):
-    with RolloutEngine(*loaded, num_envs=2, cameras=("corner2",), max_steps=10) as eng:
+    with RolloutEngine(*loaded, EnvPool(2, ("corner2",), max_steps=10), task_description) as eng:
         episodes = eng.rollout([("reach-v3", 0)], k=2, sampling=Sampling(greedy=True)).episodes
     for e in episodes:
         frames = e.images["corner2"]

@@ -16,6 +16,7 @@ from lerobot_cso.cso import rsft
 from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
+from lerobot_cso.rollout.engine import Sampling
 
 S = 1_000_000  # first R-SFT initial-state seed
 OUTCOMES = {  # (task, seed) -> samples that succeed
@@ -105,7 +106,7 @@ def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy,
 def test_a_journal_with_other_settings_is_refused(il_policy, tmp_path):
     rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
     with pytest.raises(UsageError, match="other settings"):
-        rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, temperature=0.7).spec())
+        rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, sampling=Sampling(temperature=0.7)).spec())
 
 
 def test_a_task_never_solved_is_a_clear_error(il_policy, tmp_path):

@@ -50,7 +50,7 @@ def make_cfg(policy_path: Path, out: Path, **kw) -> spo.SPOConfig:
 
 
 def engine_factory(engines: list[ScriptedEngine], outcome=mixed):
-    def make(policy, pre, post, num_envs, max_steps):
+    def make(policy, pre, post, cfg):
         engine = ScriptedEngine(outcome, policy=policy)
         engines.append(engine)
         return engine

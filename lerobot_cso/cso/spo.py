@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import matplotlib
 import numpy as np
@@ -33,14 +34,7 @@ import torch
 from lerobot.configs import parser
 from lerobot.configs.default import WandBConfig
 
-from lerobot_cso.checkpoints import (
-    PolicyPathConfig,
-    load_policy,
-    replace_dir,
-    restore_interrupted_replace,
-    save_checkpoint,
-    write_atomic,
-)
+from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import (
     Granularity,
     advantages_for,
@@ -48,14 +42,13 @@ from lerobot_cso.cso.objectives import (
     default_clip,
     reject_uniform_groups,
 )
+from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import HORIZON
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
-from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
+from lerobot_cso.rollout_stage import RolloutStageConfig
 
-SPO_SEED_OFFSET = 500_000  # SPO states: second half of the training range (R-SFT uses the first)
 LOG_COLUMNS = (
     "iteration",
     "success_rate",
@@ -84,10 +77,11 @@ UPDATE_STATS = (
 
 
 @dataclass
-class SPOConfig(PolicyPathConfig):
+class SPOConfig(RolloutStageConfig):
     """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
 
-    tasks: str = "MT10"
+    policy_role: ClassVar[str] = "the R-SFT checkpoint's pretrained_model directory"
+
     output_dir: Path = Path("outputs/spo")
     # token (GRPO) | skill (SPO, Eq. 9) | trajectory (GSPO) | ript
     objective: str = "skill"
@@ -102,42 +96,30 @@ class SPOConfig(PolicyPathConfig):
     # Ratio clip range [clip_low, clip_high]; null → the objective's default (skill: [0.93, 1.15]).
     clip_low: float | None = None
     clip_high: float | None = None
-    temperature: float = 1.0
-    top_k: int | None = 5
+    # Top-k of the distribution the ratios are computed under (null: the full softmax at the sampling
+    # temperature, as RIPT).
     ratio_top_k: int | None = None
     # Stop an iteration's epochs early once a minibatch's approximate KL exceeds this (CleanRL); null: never.
     target_kl: float | None = None
     # Give up on an iteration's collection after drawing this many times B groups (all rejected).
     max_draw_factor: int = 4
-    num_envs: int = 16
-    max_steps: int = HORIZON  # episode cap of the rollouts (a failure runs to the cap)
     seed: int = 0
     wandb: WandBConfig = field(default_factory=WandBConfig)
 
     def validate(self) -> list[str]:
-        if self.policy is None or self.policy.pretrained_path is None:
-            raise UsageError("--policy.path is required (the R-SFT checkpoint's pretrained_model directory)")
+        tasks = super().validate()
         if self.objective not in set(Granularity):
             raise UsageError(f"objective must be one of {', '.join(Granularity)}, got '{self.objective}'")
-        try:
-            tasks = resolve_tasks(self.tasks)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
-        for name in ("iterations", "groups_per_iteration", "epochs", "minibatch_trajectories", "num_envs"):
+        for name in ("iterations", "groups_per_iteration", "epochs", "minibatch_trajectories", "max_draw_factor"):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.group_size < 2:
             raise UsageError(f"group_size must be >= 2 for group-relative advantages, got {self.group_size}")
-        if not 1 <= self.max_steps <= HORIZON:
-            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         if self.target_kl is not None and self.target_kl <= 0:
             raise UsageError(f"target_kl must be > 0 or null, got {self.target_kl}")
         low, high = self.clip()
         if not 0 < low <= 1 <= high:
             raise UsageError(f"the clip range must satisfy 0 < clip_low <= 1 <= clip_high, got [{low}, {high}]")
-        unknown = [t for t in tasks if task_description(t) not in self.policy.tasks]
-        if unknown:
-            raise UsageError(f"the policy was not trained on {', '.join(unknown)}")
         return tasks
 
     def clip(self) -> tuple[float, float]:
@@ -187,18 +169,18 @@ def collect_groups(
     cfg: SPOConfig, tasks: list[str], engine: RolloutEngine, cursor: int, round_seed: int
 ) -> tuple[list[list[Episode]], dict[str, float], int]:
     """Draw groups of K until B are accepted (dynamic rejection); returns groups, stats, new seed cursor."""
-    sampling = Sampling(temperature=cfg.temperature, top_k=cfg.top_k)
+    world = cfg.world()
     accepted: list[list[Episode]] = []
     outcomes: list[float] = []
     drawn = env_steps = 0
     while len(accepted) < cfg.groups_per_iteration and drawn < cfg.max_draw_factor * cfg.groups_per_iteration:
         n = cfg.groups_per_iteration - len(accepted)
         states = [
-            InitialState(tasks[(cursor + i) % len(tasks)], seeds.train_seeds(1, SPO_SEED_OFFSET + cursor + i)[0])
-            for i in range(n)
+            InitialState(task, world.training_states(task, "spo", cursor + i, 1)[0])
+            for i, task in ((i, tasks[(cursor + i) % len(tasks)]) for i in range(n))
         ]
         cursor += n
-        result = engine.rollout(states, k=cfg.group_size, sampling=sampling, seed=round_seed + drawn)
+        result = engine.rollout(states, k=cfg.group_size, sampling=cfg.sampling, seed=round_seed + drawn)
         groups = result.groups()
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
         keep = reject_uniform_groups(rewards)
@@ -221,7 +203,9 @@ def update(
     """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21)."""
     policy.eval()  # dropout off: π_old and π are evaluated identically
     with torch.no_grad():
-        old = padded_logprobs(policy, batch.contexts, batch.tokens, batch.mask, cfg.temperature, cfg.ratio_top_k)
+        old = padded_logprobs(
+            policy, batch.contexts, batch.tokens, batch.mask, cfg.sampling.temperature, cfg.ratio_top_k
+        )
     clip = cfg.clip()
     rows: list[dict[str, float]] = []
     n = len(batch.tokens)
@@ -230,7 +214,12 @@ def update(
             break
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
             new = padded_logprobs(
-                policy, batch.contexts[idx], batch.tokens[idx], batch.mask[idx], cfg.temperature, cfg.ratio_top_k
+                policy,
+                batch.contexts[idx],
+                batch.tokens[idx],
+                batch.mask[idx],
+                cfg.sampling.temperature,
+                cfg.ratio_top_k,
             )
             loss, stats = clipped_surrogate_loss(
                 new, old[idx], batch.mask[idx], batch.advantages[idx], cfg.objective, clip
@@ -266,30 +255,33 @@ def format_row(row: dict[str, float]) -> str:
     return " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in LOG_COLUMNS)
 
 
-def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine) -> list[dict[str, float]]:
+def run_spo(
+    cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine.for_stage
+) -> list[dict[str, float]]:
     """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``.
 
-    ``make_engine(policy, preprocessor, postprocessor, num_envs=..., max_steps=...)`` builds the rollout engine.
+    ``make_engine(policy, preprocessor, postprocessor, cfg)`` builds the rollout engine.
     """
     tasks = cfg.validate()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    state = cfg.output_dir / "state"
-    restore_interrupted_replace(state)
-    progress_file = state / "progress.json"
-    resume = progress_file.is_file()
-    progress = json.loads(progress_file.read_text()) if resume else {"iteration": 0, "cursor": 0, "history": []}
+    state = ResumableState(cfg.output_dir / "state")
+    saved = state.progress()
+    resume = saved is not None
+    progress = saved or {"iteration": 0, "cursor": 0, "history": []}
     if progress["iteration"] >= cfg.iterations:
         print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
         if not (cfg.output_dir / "pretrained_model" / "config.json").is_file():  # killed before the final copy
-            shutil.copytree(state / "pretrained_model", cfg.output_dir / "pretrained_model.tmp", dirs_exist_ok=True)
-            replace_dir(cfg.output_dir / "pretrained_model.tmp", cfg.output_dir / "pretrained_model")
+            tmp = cfg.output_dir / "pretrained_model.tmp"
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(state.directory / "pretrained_model", tmp)
+            replace_dir(tmp, cfg.output_dir / "pretrained_model")
         return progress["history"]
-    source = state / "pretrained_model" if resume else cfg.policy.pretrained_path
+    source = state.directory / "pretrained_model" if resume else cfg.policy.pretrained_path
     policy, pre, post = load_policy(source, cfg.policy if not resume else None)
     policy.set_encoders_frozen(True)
     optimizer = torch.optim.AdamW(policy.prior.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     if resume:
-        optimizer.load_state_dict(torch.load(state / "optimizer.pt"))
+        optimizer.load_state_dict(torch.load(state.directory / "optimizer.pt"))
     generator = torch.Generator().manual_seed(cfg.seed)
     run = None
     if cfg.wandb.enable:
@@ -305,10 +297,10 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutE
         )
     history = progress["history"]
     print(" | ".join(LOG_COLUMNS))
-    with make_engine(policy, pre, post, num_envs=cfg.num_envs, max_steps=cfg.max_steps) as engine:
+    with make_engine(policy, pre, post, cfg) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
-            round_seed = cfg.seed * 1_000_003 + iteration * 10_007
+            round_seed = seeds.round_seed(cfg.seed, iteration * 10_007)
             groups, stats, cursor = collect_groups(cfg, tasks, engine, progress["cursor"], round_seed)
             generator.manual_seed(round_seed)
             if groups:
@@ -320,13 +312,12 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutE
             print(format_row(row), flush=True)
             if run is not None:
                 run.log(row, step=iteration + 1)
-            tmp = cfg.output_dir / "state.tmp"
-            shutil.rmtree(tmp, ignore_errors=True)
-            save_checkpoint(tmp / "pretrained_model", policy, pre, post)
-            torch.save(optimizer.state_dict(), tmp / "optimizer.pt")
-            progress = {"iteration": iteration + 1, "cursor": cursor, "history": history}
-            write_atomic(tmp / "progress.json", json.dumps(progress).encode())
-            replace_dir(tmp, state)
+
+            def write(directory: Path) -> None:
+                save_checkpoint(directory / "pretrained_model", policy, pre, post)
+                torch.save(optimizer.state_dict(), directory / "optimizer.pt")
+
+            state.save({"iteration": iteration + 1, "cursor": cursor, "history": history}, write)
             write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
             plot_history(history, cfg.output_dir / "spo.png")
     save_checkpoint(cfg.output_dir / "pretrained_model", policy, pre, post)

@@ -8,7 +8,7 @@ for demonstrations, online-training rollouts and evaluation can never coincide:
 purpose    range                        use
 =========  ===========================  ==============================================================
 demo       [0, 1_000_000)               episode ``i`` of a task's demos starts from ``DEMO.start + i``
-train      [1_000_000, 2_000_000)       online rollouts (R-SFT, SPO) draw their initial states here
+train      [1_000_000, 2_000_000)       online rollouts: R-SFT draws from the first half, SPO from the second
 eval       [2_000_000, 3_000_000)       evaluation: seed ``s`` owns the block of ``EVAL_BLOCK`` states
                                         starting at ``EVAL.start + s * EVAL_BLOCK``
 =========  ===========================  ==============================================================
@@ -24,6 +24,7 @@ DEMO = range(0, 1_000_000)
 TRAIN = range(1_000_000, 2_000_000)
 EVAL = range(2_000_000, 3_000_000)
 EVAL_BLOCK = 10_000
+TRAINING_OFFSETS = {"rsft": 0, "spo": len(TRAIN) // 2}  # each purpose's half of the training range
 
 
 def _block(span: range, start: int, count: int) -> list[int]:
@@ -41,6 +42,18 @@ def demo_seeds(count: int, start: int = 0) -> list[int]:
 def train_seeds(count: int, start: int = 0) -> list[int]:
     """Initial-state seeds for online-training rollouts ``start .. start + count - 1``."""
     return _block(TRAIN, start, count)
+
+
+def training_seeds(purpose: str, start: int, count: int) -> list[int]:
+    """Initial-state seeds ``start .. start + count - 1`` of one online-training purpose (``rsft`` or ``spo``)."""
+    if start + count > len(TRAIN) // 2:
+        raise ValueError(f"{purpose} seeds [{start}, {start + count}) exceed its {len(TRAIN) // 2} training states")
+    return train_seeds(count, TRAINING_OFFSETS[purpose] + start)
+
+
+def round_seed(seed: int, index: int) -> int:
+    """The sampling seed of one rollout round: the run's ``seed`` mixed with the round's ``index``."""
+    return seed * 1_000_003 + index
 
 
 def eval_seeds(count: int, eval_seed: int = 0) -> list[int]:

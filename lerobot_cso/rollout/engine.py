@@ -1,13 +1,15 @@
 """Policy-driven rollouts: "roll out this policy from these initial states, K times each".
 
-Every later stage (R-SFT, SPO, evaluation) goes through :meth:`RolloutEngine.rollout`. The K episodes of a
-group all start from the same initial state ``(task, seed)``; per episode the engine returns the
+Every later stage (R-SFT, SPO, evaluation) goes through :meth:`RolloutEngine.rollout`, whatever the world: the
+engine drives a :class:`~lerobot_cso.rollout.backend.RolloutBackend` (MetaWorld's env pool, or another world's)
+built by the stage's :class:`~lerobot_cso.rollout.world.World`. The K episodes of a group all start from the
+same initial state ``(task, seed)``; per episode the engine returns the
 observations and executed actions of every step, and per decision (every ``n_action_steps`` steps) the
 encoder context the skill was sampled from, the sampled tokens and their sampling log-probs, so that
 ``policy.token_logprobs(context, tokens, temperature, top_k)`` recomputes them with gradients.
 
-Inference is batched across all envs: episodes start on multiples of ``n_action_steps`` (see
-:class:`~lerobot_cso.rollout.pool.EnvPool`), so each decision round is one call of the policy hooks::
+Inference is batched across all envs: episodes start on multiples of ``n_action_steps``, so each decision round
+is one call of the policy hooks (the :class:`SkillPolicy` contract)::
 
     ctx = policy.encode_context(preprocessor(obs))          # (B, P, d)
     tokens, logp = policy.sample_skills(ctx, temperature, top_k, greedy, generator)
@@ -22,7 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -30,13 +32,14 @@ from lerobot.envs.utils import preprocess_observation
 from lerobot.utils.constants import OBS_IMAGES
 from torch import Tensor
 
-from lerobot_cso.envs.constants import ACTION_DIM, HORIZON
-from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.rollout.pool import EnvPool, Job, Trace, Vectorization
+from lerobot_cso.rollout.backend import Job, RolloutBackend, Trace
+
+if TYPE_CHECKING:
+    from lerobot_cso.rollout.world import RolloutSettings
 
 
 class InitialState(NamedTuple):
-    """An initial state: a MetaWorld task and the seed that places its objects and goal."""
+    """An initial state: a task and its world's id for the state (MetaWorld: the seed placing objects and goal)."""
 
     task: str
     seed: int
@@ -62,8 +65,8 @@ class Episode:
     sample: int  # 0 .. K-1 within the group
     success: bool
     length: int  # env steps executed
-    states: Tensor  # (length, 39) float32, raw (unnormalised) MetaWorld observations
-    actions: Tensor  # (length, 4) float32, executed actions (unnormalised, clipped to [-1, 1])
+    states: Tensor  # (length, S) float32, raw (unnormalised) state observations
+    actions: Tensor  # (length, A) float32, executed actions (unnormalised, as the backend executed them)
     images: dict[str, Tensor]  # camera -> (length, H, W, 3) uint8; empty without cameras
     decision_steps: Tensor  # (D,) int64, the step at which each skill was sampled
     contexts: Tensor  # (D, P, d) float32, encoder output the skill was sampled from
@@ -106,93 +109,43 @@ class RolloutResult:
         return [self.episodes[g * self.k : (g + 1) * self.k] for g in range(len(self.episodes) // self.k)]
 
 
-class _PolicyController:
-    """Pool controller: one batched skill decision for every active slot, executed as an action chunk.
+class SkillPolicy(Protocol):
+    """What the engine and the CSO stages need of a policy (``CSOPolicy`` implements it)."""
 
-    The pool starts episodes only on multiples of ``n_action_steps``, so every call is a decision step of
-    every running episode.
-    """
+    config: Any  # n_action_steps, n_tokens, device, input_features
+    training: bool
 
-    def __init__(self, engine: RolloutEngine, sampling: Sampling, generator: torch.Generator) -> None:
-        self.engine = engine
-        self.sampling = sampling
-        self.generator = generator
-        n = engine.pool.num_envs
-        self.steps = np.zeros(n, dtype=np.int64)
-        self.descriptions: list[str] = [""] * n
-        self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(n)]
-        self.policy_seconds = 0.0
+    def encode_context(self, batch: dict[str, Any]) -> Tensor:
+        """Encoder context ``(B, P, d)`` of a preprocessed observation batch."""
 
-    def start(self, slot: int, job: Job) -> None:
-        self.steps[slot] = 0
-        self.descriptions[slot] = task_description(job.task)
-        self.decisions[slot] = []
-
-    def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
-        started = time.perf_counter()
-        rows = np.flatnonzero(active).tolist()
-        contexts, tokens, logprobs, chunks = self.engine.decide(
-            obs, rows, self.descriptions, self.sampling, self.generator
-        )
-        actions = np.zeros((len(active), chunks.shape[1], ACTION_DIM), dtype=np.float32)
-        for i, slot in enumerate(rows):
-            self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
-            actions[slot] = chunks[i]
-            self.steps[slot] += chunks.shape[1]
-        self.policy_seconds += time.perf_counter() - started
-        return actions
-
-    def finish(self, slot: int) -> dict[str, Tensor]:
-        steps, contexts, tokens, logprobs = zip(*self.decisions[slot], strict=True)
-        return {
-            "decision_steps": torch.tensor(steps, dtype=torch.int64),
-            "contexts": torch.stack(contexts),
-            "tokens": torch.stack(tokens),
-            "logprobs": torch.stack(logprobs),
-        }
-
-
-def _episode(trace: Trace) -> Episode:
-    group, sample = trace.job.key
-    return Episode(
-        task=trace.job.task,
-        task_description=task_description(trace.job.task),
-        init_seed=trace.job.init_seed,
-        group=group,
-        sample=sample,
-        success=trace.success,
-        length=trace.length,
-        states=torch.from_numpy(trace.states),
-        actions=torch.from_numpy(trace.actions),
-        images={cam: torch.from_numpy(frames) for cam, frames in trace.images.items()},
-        **trace.record,
-    )
-
-
-class RolloutEngine:
-    """A policy, its processors and a pool of MetaWorld envs; reused across calls (models stay built).
-
-    ``cameras`` defaults to the cameras the policy reads (its ``observation.images.<camera>`` inputs).
-    """
-
-    def __init__(
+    def sample_skills(
         self,
-        policy: Any,
-        preprocessor: Any,
-        postprocessor: Any,
-        num_envs: int = 16,
-        cameras: Sequence[str] | None = None,
-        max_steps: int = HORIZON,
-        vectorization: Vectorization = "processes",
-        workers: int | None = None,
-    ) -> None:
+        context: Tensor,
+        temperature: float = 1.0,
+        top_k: int | None = None,
+        greedy: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Sampled tokens ``(B, n)`` and their log-probs under the distribution sampled from."""
+
+    def token_logprobs(self, context: Tensor, tokens: Tensor, temperature: float, top_k: int | None) -> Tensor:
+        """Teacher-forced per-token log-probs ``(B, n)``, with gradients."""
+
+    def decode_skills(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
+        """Normalised actions ``(B, n_actions, A)`` of the skills."""
+
+    def train(self, mode: bool = True) -> Any: ...
+
+    def eval(self) -> Any: ...
+
+
+class SkillSampler:
+    """A policy and its processors: one batched skill decision from raw observations."""
+
+    def __init__(self, policy: SkillPolicy, preprocessor: Any, postprocessor: Any) -> None:
         self.policy = policy
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
-        if cameras is None:
-            prefix = f"{OBS_IMAGES}."
-            cameras = [key.removeprefix(prefix) for key in policy.config.input_features if key.startswith(prefix)]
-        self.pool = EnvPool(num_envs, cameras, max_steps=max_steps, vectorization=vectorization, workers=workers)
 
     @torch.no_grad()
     def decide(
@@ -223,6 +176,106 @@ class RolloutEngine:
         chunks = flat.reshape(chunk.shape).float().cpu().numpy()
         return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks
 
+
+class _PolicyController:
+    """Backend controller: one batched skill decision for every active slot, executed as an action chunk.
+
+    Backends start episodes only on multiples of ``n_action_steps``, so every call is a decision step of
+    every running episode.
+    """
+
+    def __init__(
+        self,
+        sampler: SkillSampler,
+        num_envs: int,
+        describe: Callable[[str], str],
+        sampling: Sampling,
+        generator: torch.Generator,
+    ) -> None:
+        self.sampler = sampler
+        self.describe = describe
+        self.sampling = sampling
+        self.generator = generator
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+        self.descriptions: list[str] = [""] * num_envs
+        self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(num_envs)]
+        self.policy_seconds = 0.0
+
+    def start(self, slot: int, job: Job) -> None:
+        self.steps[slot] = 0
+        self.descriptions[slot] = self.describe(job.task)
+        self.decisions[slot] = []
+
+    def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
+        started = time.perf_counter()
+        rows = np.flatnonzero(active).tolist()
+        contexts, tokens, logprobs, chunks = self.sampler.decide(
+            obs, rows, self.descriptions, self.sampling, self.generator
+        )
+        actions = np.zeros((len(active), *chunks.shape[1:]), dtype=np.float32)
+        for i, slot in enumerate(rows):
+            self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
+            actions[slot] = chunks[i]
+            self.steps[slot] += chunks.shape[1]
+        self.policy_seconds += time.perf_counter() - started
+        return actions
+
+    def finish(self, slot: int) -> dict[str, Tensor]:
+        steps, contexts, tokens, logprobs = zip(*self.decisions[slot], strict=True)
+        return {
+            "decision_steps": torch.tensor(steps, dtype=torch.int64),
+            "contexts": torch.stack(contexts),
+            "tokens": torch.stack(tokens),
+            "logprobs": torch.stack(logprobs),
+        }
+
+
+def _episode(trace: Trace, describe: Callable[[str], str]) -> Episode:
+    group, sample = trace.job.key
+    return Episode(
+        task=trace.job.task,
+        task_description=describe(trace.job.task),
+        init_seed=trace.job.init_seed,
+        group=group,
+        sample=sample,
+        success=trace.success,
+        length=trace.length,
+        states=torch.from_numpy(trace.states),
+        actions=torch.from_numpy(trace.actions),
+        images={cam: torch.from_numpy(frames) for cam, frames in trace.images.items()},
+        **trace.record,
+    )
+
+
+class RolloutEngine:
+    """A policy, its processors and a rollout backend; reused across calls (models stay built).
+
+    ``describe`` maps a task name to the language instruction the policy is conditioned on.
+    """
+
+    def __init__(
+        self,
+        policy: SkillPolicy,
+        preprocessor: Any,
+        postprocessor: Any,
+        backend: RolloutBackend,
+        describe: Callable[[str], str],
+    ) -> None:
+        self.policy = policy
+        self.sampler = SkillSampler(policy, preprocessor, postprocessor)
+        self.backend = backend
+        self.describe = describe
+
+    @classmethod
+    def for_stage(
+        cls, policy: SkillPolicy, preprocessor: Any, postprocessor: Any, settings: RolloutSettings
+    ) -> RolloutEngine:
+        """The engine of a rollout stage: the backend of ``settings``' world, with the cameras the policy reads."""
+        world = settings.world()
+        return cls(
+            policy, preprocessor, postprocessor, world.backend(settings, policy_cameras(policy)), world.task_description
+        )
+
     def rollout(
         self,
         initial_states: Sequence[InitialState | tuple[str, int]],
@@ -242,14 +295,14 @@ class RolloutEngine:
         jobs = [Job(s.task, s.seed, (g, i)) for g, s in enumerate(states) for i in range(k)]
         device = torch.device(self.policy.config.device or "cpu")
         generator = torch.Generator(device=device).manual_seed(seed)
-        controller = _PolicyController(self, sampling, generator)
+        controller = _PolicyController(self.sampler, self.backend.num_envs, self.describe, sampling, generator)
         was_training = self.policy.training
         self.policy.eval()
         started = time.perf_counter()
         episodes: list[Episode] = [None] * len(jobs)  # type: ignore[list-item]
         try:
-            for index, trace in self.pool.run(jobs, controller, self.policy.config.n_action_steps, progress):
-                episodes[index] = _episode(trace)
+            for index, trace in self.backend.run(jobs, controller, self.policy.config.n_action_steps, progress):
+                episodes[index] = _episode(trace, self.describe)
                 if on_episode is not None:
                     on_episode(episodes[index])
         finally:
@@ -257,10 +310,16 @@ class RolloutEngine:
         return RolloutResult(episodes, k, sampling, time.perf_counter() - started, controller.policy_seconds)
 
     def close(self) -> None:
-        self.pool.close()
+        self.backend.close()
 
     def __enter__(self) -> RolloutEngine:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def policy_cameras(policy: SkillPolicy) -> list[str]:
+    """The cameras a policy reads: its ``observation.images.<camera>`` inputs."""
+    prefix = f"{OBS_IMAGES}."
+    return [key.removeprefix(prefix) for key in policy.config.input_features if key.startswith(prefix)]

@@ -1,4 +1,5 @@
-"""A pool of MetaWorld envs (a gymnasium vector env) that runs a queue of episodes under one controller.
+"""The MetaWorld rollout backend: a pool of envs (a gymnasium vector env) that runs a queue of episodes under
+one controller (:class:`~lerobot_cso.rollout.backend.RolloutBackend`).
 
 The vector env runs with ``autoreset_mode=DISABLED``: a slot whose episode ended is parked at once, then reset
 (``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, when one may
@@ -21,9 +22,8 @@ from __future__ import annotations
 import os
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -33,6 +33,7 @@ from tqdm import tqdm
 from lerobot_cso.envs.constants import HORIZON, IMAGE_SIZE
 from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, check_cameras
 from lerobot_cso.envs.tasks import check_task
+from lerobot_cso.rollout.backend import Controller, Job, Trace
 from lerobot_cso.rollout.sharded import ShardedVectorEnv, last_step, step_chunk
 
 Vectorization = Literal["processes", "sync", "async"]
@@ -42,42 +43,6 @@ VECTORIZATIONS: tuple[str, ...] = ("processes", "sync", "async")
 def default_workers() -> int:
     """Worker processes of the ``processes`` vectorization: one per core this process may run on."""
     return len(os.sched_getaffinity(0))
-
-
-@dataclass(frozen=True)
-class Job:
-    """One episode to run: a task, an initial-state seed, and the caller's handle for it."""
-
-    task: str
-    init_seed: int
-    key: Any = None
-
-
-@dataclass
-class Trace:
-    """What the pool records for a finished episode (``states[t]`` is the input of ``actions[t]``)."""
-
-    job: Job
-    success: bool
-    length: int
-    states: np.ndarray  # (length, 39) float32
-    actions: np.ndarray  # (length, 4) float32, as executed (clipped to [-1, 1])
-    images: dict[str, np.ndarray] = field(default_factory=dict)  # camera -> (length, H, W, 3) uint8
-    record: Any = None  # whatever the controller returned from ``finish``
-
-
-class Controller(Protocol):
-    """Chooses the actions of every slot of a pool."""
-
-    def start(self, slot: int, job: Job) -> None:
-        """A new episode begins in ``slot``."""
-
-    def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
-        """Actions ``(num_envs, 4)``, or a chunk ``(num_envs, L, 4)`` executed open-loop, for the batched
-        observation; rows where ``active`` is False are ignored."""
-
-    def finish(self, slot: int) -> Any:
-        """The episode in ``slot`` ended; return the controller's record of it (or None)."""
 
 
 class _Recorder:

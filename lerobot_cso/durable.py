@@ -1,0 +1,147 @@
+"""Everything that must survive ``kill -9``: atomic files and directories, an episode journal, resumable state.
+
+* :func:`write_atomic` / :func:`write_json` / :func:`save_npz`: a reader (or a rerun after a crash) sees the
+  old content or the new, never a torn file; data and directory entry are fsynced.
+* :func:`replace_dir`: swap a finished directory into place; :func:`restore_interrupted_replace` undoes a swap
+  killed between its two renames.
+* :class:`EpisodeJournal`: one file per finished episode, written the moment it ends, plus small per-group
+  records (demos, R-SFT collection, real-arm rollouts). A journal made with other settings is refused.
+* :class:`ResumableState`: a directory (checkpoint files plus ``progress.json``) replaced as a whole after
+  each unit of work (an SPO iteration, an R-SFT epoch).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lerobot_cso.errors import UsageError
+
+PROGRESS_FILE = "progress.json"
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _commit(tmp: Path, path: Path, write: Callable[[Any], None]) -> None:
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temporary sibling, fsync, rename)."""
+    _commit(path.with_name(path.name + ".tmp"), path, lambda f: f.write(data))
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write ``data`` as indented JSON, atomically."""
+    write_atomic(path, json.dumps(data, indent=2, default=str).encode())
+
+
+def read_json(path: Path) -> Any | None:
+    """The JSON in ``path``, or None when there is no such file."""
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``arrays`` as an ``.npz`` atomically."""
+    _commit(path.with_name(path.name + ".tmp"), path, lambda f: np.savez(f, **arrays))
+
+
+def replace_dir(src: Path, dst: Path) -> None:
+    """Move directory ``src`` to ``dst``, replacing it; a crash leaves either the old or the new one."""
+    old = dst.with_name(dst.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if dst.exists():
+        os.replace(dst, old)
+    os.replace(src, dst)
+    _fsync_dir(dst.parent)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def restore_interrupted_replace(dst: Path) -> None:
+    """Undo a :func:`replace_dir` killed between its two renames."""
+    old = dst.with_name(dst.name + ".old")
+    if not dst.exists() and old.exists():
+        os.replace(old, dst)
+
+
+class EpisodeJournal:
+    """``root/spec.json``, ``root/episodes/<group>/<name>.npz`` and ``root/records/<group>/<name>.json``.
+
+    ``spec`` is what the journal's content depends on; opening a journal that holds a different one raises
+    ``UsageError`` (``what`` names the content in that message).
+    """
+
+    def __init__(self, root: Path, spec: dict[str, Any], what: str = "a collection") -> None:
+        self.root = root
+        stored = read_json(root / "spec.json")
+        if stored is not None and stored != spec:
+            raise UsageError(
+                f"{root} holds {what} made with other settings ({stored}); delete it or choose another --output_dir"
+            )
+        (root / "episodes").mkdir(parents=True, exist_ok=True)
+        (root / "records").mkdir(parents=True, exist_ok=True)
+        write_json(root / "spec.json", spec)
+
+    def episode_path(self, group: str, name: str) -> Path:
+        return self.root / "episodes" / group / f"{name}.npz"
+
+    def save_episode(self, group: str, name: str, arrays: dict[str, np.ndarray]) -> None:
+        path = self.episode_path(group, name)
+        path.parent.mkdir(exist_ok=True)
+        save_npz(path, arrays)
+
+    def episode_files(self, group: str | None = None) -> list[Path]:
+        """Episode files of ``group`` (every group when None), sorted by group then name."""
+        return sorted((self.root / "episodes").glob(f"{group or '*'}/*.npz"))
+
+    @staticmethod
+    def load(path: Path) -> dict[str, np.ndarray]:
+        with np.load(path) as data:
+            return dict(data)
+
+    def save_record(self, group: str, name: str, record: dict[str, Any]) -> None:
+        directory = self.root / "records" / group
+        directory.mkdir(exist_ok=True)
+        write_json(directory / f"{name}.json", record)
+
+    def records(self, group: str) -> dict[str, dict[str, Any]]:
+        """name → record of every record of ``group``."""
+        return {p.stem: json.loads(p.read_text()) for p in (self.root / "records" / group).glob("*.json")}
+
+
+class ResumableState:
+    """A state directory holding a unit of work's files and ``progress.json``, replaced as a whole."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        restore_interrupted_replace(directory)
+
+    def progress(self) -> dict[str, Any] | None:
+        """The progress saved last, or None before the first save."""
+        return read_json(self.directory / PROGRESS_FILE)
+
+    def save(self, progress: dict[str, Any], write: Callable[[Path], None]) -> None:
+        """``write(tmp)`` fills a fresh directory, then it replaces the state together with ``progress``."""
+        tmp = self.directory.with_name(self.directory.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        write(tmp)
+        write_json(tmp / PROGRESS_FILE, progress)
+        replace_dir(tmp, self.directory)

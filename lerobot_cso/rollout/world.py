@@ -1,0 +1,90 @@
+"""Worlds: where rollouts run, what their tasks are called, and which initial states each purpose uses.
+
+R-SFT, SPO and evaluation never name a world: they ask their settings' :class:`World` for task names,
+language descriptions, initial states and a rollout backend. Initial states are plain integers whose meaning
+is the world's own (MetaWorld: the reset seed, from the disjoint ranges of :mod:`lerobot_cso.envs.seeds`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal, Protocol
+
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.constants import FPS, HORIZON
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.rollout.backend import RolloutBackend
+
+Purpose = Literal["rsft", "spo"]
+
+
+class RolloutSettings(Protocol):
+    """The rollout settings of a stage (``RolloutStageConfig`` implements it)."""
+
+    tasks: str
+    num_envs: int
+    vectorization: str
+
+    def world(self) -> World: ...
+
+    def horizon(self) -> int:
+        """The episode cap of the rollouts."""
+
+
+class World(Protocol):
+    """A world's names, initial states and backend."""
+
+    name: str
+    robot_type: str  # LeRobotDataset's robot_type of buffers recorded in this world
+    fps: int  # control frequency (frames per second of recorded buffers)
+    horizon: int  # the longest episode the world allows, and the default episode cap
+    eval_seeds: int  # evaluation seeds 0 .. eval_seeds - 1 exist
+    eval_states_per_seed: int  # at most this many evaluation episodes per task and seed
+
+    def resolve_tasks(self, spec: str) -> list[str]:
+        """The tasks named by ``spec``; ``ValueError`` naming the valid choices otherwise."""
+
+    def task_description(self, task: str) -> str:
+        """The language instruction of ``task``."""
+
+    def training_states(self, task: str, purpose: Purpose, start: int, count: int) -> list[int]:
+        """The ``start .. start + count - 1``-th initial states of ``task`` for online training (``purpose``)."""
+
+    def eval_states(self, task: str, eval_seed: int, count: int) -> list[int]:
+        """The first ``count`` evaluation initial states of ``task`` under evaluation seed ``eval_seed``."""
+
+    def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
+        """A backend rolling out on this world with the given settings and cameras."""
+
+
+class MetaWorld:
+    """MetaWorld v3: seeded initial states, a pool of vector envs (:class:`~lerobot_cso.rollout.pool.EnvPool`)."""
+
+    name = "metaworld"
+    robot_type = "sawyer"
+    fps = FPS
+    horizon = HORIZON
+    eval_seeds = len(seeds.EVAL) // seeds.EVAL_BLOCK
+    eval_states_per_seed = seeds.EVAL_BLOCK
+
+    def resolve_tasks(self, spec: str) -> list[str]:
+        return resolve_tasks(spec)
+
+    def task_description(self, task: str) -> str:
+        return task_description(task)
+
+    def training_states(self, task: str, purpose: Purpose, start: int, count: int) -> list[int]:
+        return seeds.training_seeds(purpose, start, count)
+
+    def eval_states(self, task: str, eval_seed: int, count: int) -> list[int]:
+        return seeds.eval_seeds(count, eval_seed)
+
+    def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
+        from lerobot_cso.rollout.pool import EnvPool
+
+        return EnvPool(settings.num_envs, cameras, max_steps=settings.horizon(), vectorization=settings.vectorization)
+
+
+def world_for(tasks: str) -> World:
+    """The world whose tasks ``tasks`` names (MetaWorld unless another world claims them)."""
+    return MetaWorld()
