@@ -2,8 +2,8 @@
 
 Every plain driver setting (bus, motion mode, speed, timeouts, recovery, disconnect policy, rest pose …)
 is inherited from ``piper_can.driver.DriverSettings``, with its default and its check; only the
-settings LeRobot shapes differently (``max_relative_target``, ``joint_limits``, ``port``) and the
-robot's own ones are declared here.
+settings LeRobot shapes differently (``max_relative_target``, ``joint_limits``, ``port``), the motion
+mode (which defaults to the recorded one) and the robot's own ones are declared here.
 """
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
-from piper_can.driver import DriverConfig, DriverSettings
+from piper_can.driver import MOTION_MODES, DriverConfig, DriverSettings
 from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
 
 from .features import GRIPPER_KEY, JOINT_KEYS, MOTOR_KEYS
+from .motion_metadata import DEFAULT_MOTION_MODE, DEFAULT_SPEED_PERCENT, MotionMode
 
 
 def _default_limits() -> dict[str, tuple[float, float]]:
@@ -28,6 +29,12 @@ def _default_limits() -> dict[str, tuple[float, float]]:
 class PiperFollowerConfig(RobotConfig, DriverSettings):
     """An AgileX PiPER arm driven over CAN (``--robot.interface/--robot.channel``)."""
 
+    # "position" or "high_follow"; None: the mode recorded with the dataset or policy being deployed
+    # (motion_mode_from, else the command line's --policy.path / --dataset.root / --dataset.repo_id),
+    # else position. Giving it overrides the recording.
+    motion_mode: str | None = None
+    # Firmware speed in position mode; None: the recorded one (when the recorded mode is used), else 50.
+    speed_percent: int | None = None
     # UDP port for interface=udp_multicast (None: python-can's default 43113).
     port: int | None = None
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
@@ -39,8 +46,8 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
     joint_limits: dict[str, tuple[float, float]] = field(default_factory=_default_limits)
     # A leader arm is linked to this follower in hardware (same bus): never send anything, only observe.
     hardware_linked_leader: bool = False
-    # A recorded dataset root or a trained policy directory: deploy in the motion mode (and speed)
-    # recorded there (meta/info.json "piper_motion"), instead of motion_mode / speed_percent.
+    # A recorded dataset root or a trained policy directory whose recorded motion mode (meta/info.json
+    # "piper_motion") to use when motion_mode is None; it must have one. None: the command line's.
     motion_mode_from: str | None = None
 
     def __post_init__(self) -> None:
@@ -52,8 +59,27 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
         self.rest_pose_rad = tuple(self.rest_pose_rad)
         self.driver_config()  # validates the rest
 
-    def driver_config(self) -> DriverConfig:
-        """The ``piper_can`` driver settings this robot config stands for."""
+    def _check_motion(self) -> None:
+        if self.motion_mode is not None and self.motion_mode not in MOTION_MODES:
+            raise ValueError(f"motion_mode must be one of {MOTION_MODES} or null, got {self.motion_mode!r}")
+        if self.speed_percent is not None and not 0 <= self.speed_percent <= 100:
+            raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
+
+    def resolve_motion(self, recorded: MotionMode | None = None) -> MotionMode:
+        """The mode to move in: ``motion_mode`` / ``speed_percent`` where given, the ``recorded`` mode
+        where not (its speed only with its mode), else position at 50 %."""
+        if self.motion_mode is None and recorded is not None:
+            speed = recorded.speed_percent if self.speed_percent is None else self.speed_percent
+            return MotionMode(recorded.motion_mode, speed)
+        return MotionMode(
+            self.motion_mode or DEFAULT_MOTION_MODE,
+            DEFAULT_SPEED_PERCENT if self.speed_percent is None else self.speed_percent,
+        )
+
+    def driver_config(self, motion: MotionMode | None = None) -> DriverConfig:
+        """The ``piper_can`` driver settings this robot config stands for, moving in ``motion``
+        (default: ``resolve_motion()``)."""
+        motion = motion or self.resolve_motion()
         cap = self.max_relative_target
         if isinstance(cap, dict):
             joint_steps: float | tuple[float, ...] | None = tuple(float(cap[k]) for k in JOINT_KEYS)
@@ -70,4 +96,6 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
             limits=limits,
             max_step_rad=joint_steps,
             max_gripper_step_m=gripper_step,
+            motion_mode=motion.motion_mode,
+            speed_percent=motion.speed_percent,
         )

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cached_property
+from pathlib import Path
 
 from lerobot.cameras import make_cameras_from_configs
 from lerobot.robots.robot import Robot
@@ -12,12 +15,27 @@ from piper_can.clock import SYSTEM_CLOCK, Clock
 from piper_can.codec import MIT_MODE_HIGH_FOLLOW
 from piper_can.driver import PiperDriver
 from piper_can.errors import ArmNotReadyError
+from piper_can.state import ArmState
 
 from .config_piper_follower import PiperFollowerConfig
 from .features import TORQUE_KEYS, VELOCITY_KEYS, from_action, motor_features, to_action
-from .motion_metadata import MotionMode, read_motion_mode
+from .motion_metadata import MotionMode, deployment_source, read_motion_mode
 
 log = logging.getLogger(__name__)
+
+# Lists that collect every PiperFollower made while ``followers_made()`` blocks run (piper-record).
+_collectors: list[list[PiperFollower]] = []
+
+
+@contextmanager
+def followers_made() -> Iterator[list[PiperFollower]]:
+    """Every ``PiperFollower`` constructed in this process while the block runs."""
+    made: list[PiperFollower] = []
+    _collectors.append(made)
+    try:
+        yield made
+    finally:
+        _collectors.remove(made)
 
 
 class PiperFollower(Robot):
@@ -33,14 +51,36 @@ class PiperFollower(Robot):
         """``clock``: the system's (LeRobot's CLIs), or a ``SimulatedClock`` in tests."""
         super().__init__(config)
         self.config = config
-        if config.motion_mode_from is not None:
-            recorded = read_motion_mode(config.motion_mode_from)
-            if recorded is None:
-                raise ValueError(f"no PiPER motion mode recorded for {config.motion_mode_from} (meta/info.json)")
-            log.info("%s: deploying in the recorded motion mode %s", self, recorded)
-            config.motion_mode, config.speed_percent = recorded.motion_mode, recorded.speed_percent
-        self.driver = PiperDriver(config.driver_config(), clock)
+        self.motion = self._deployment_motion()
+        self.driver = PiperDriver(config.driver_config(self.motion), clock)
         self.cameras = make_cameras_from_configs(config.cameras)
+        self._modes_seen: dict[MotionMode, None] = {}  # in the order first seen
+        for made in _collectors:
+            made.append(self)
+
+    def _deployment_motion(self) -> MotionMode:
+        """Our motion mode: given, else recorded with what is deployed (logged), else position at 50 %."""
+        config = self.config
+        if config.hardware_linked_leader:  # never sends: the leader's mode applies
+            return config.resolve_motion()
+        source = Path(config.motion_mode_from) if config.motion_mode_from else deployment_source()
+        recorded = None if source is None else read_motion_mode(source)
+        if config.motion_mode_from is not None and recorded is None:
+            raise ValueError(f"no PiPER motion mode recorded for {config.motion_mode_from} (meta/info.json)")
+        motion = config.resolve_motion(recorded)
+        if recorded is None:
+            if config.motion_mode is None and source is not None and source.exists():
+                log.warning(
+                    "%s: no PiPER motion mode recorded for %s (record with piper-record); moving in %s",
+                    self,
+                    source,
+                    motion,
+                )
+        elif config.motion_mode is None:
+            log.info("%s: moving in the motion mode recorded for %s: %s", self, source, motion)
+        elif motion.motion_mode != recorded.motion_mode:
+            log.warning("%s: moving in %s, not in the recorded %s (--robot.motion_mode)", self, motion, recorded)
+        return motion
 
     @cached_property
     def observation_features(self) -> dict[str, type | tuple]:
@@ -57,11 +97,22 @@ class PiperFollower(Robot):
         return self.driver.is_connected
 
     @property
-    def motion_mode(self) -> MotionMode:
-        """The mode the arm moves in: the linked leader's (from its 0x151 frames), else ours."""
-        leader = self.driver.state().leader_mode if self.config.hardware_linked_leader else None
+    def motion_mode(self) -> MotionMode | None:
+        """The mode the arm moves in: ours, or with a hardware-linked leader the leader's (from its
+        0x151 frames; None until one was heard)."""
+        return self._mode_in(self.driver.state())
+
+    @property
+    def modes_seen(self) -> tuple[MotionMode, ...]:
+        """Every mode the arm moved in at an observation since it was made (what ``piper-record`` stamps)."""
+        return tuple(self._modes_seen)
+
+    def _mode_in(self, state: ArmState) -> MotionMode | None:
+        if not self.config.hardware_linked_leader:
+            return self.motion
+        leader = state.leader_mode
         if leader is None:
-            return MotionMode(self.config.motion_mode, self.config.speed_percent)
+            return None
         high_follow = leader.value.mit_mode == MIT_MODE_HIGH_FOLLOW
         return MotionMode("high_follow" if high_follow else "position", leader.value.speed_percent)
 
@@ -99,6 +150,9 @@ class PiperFollower(Robot):
         if joints is None or gripper is None:  # not after connect(), which waited for both
             raise ArmNotReadyError(f"{self}: no joint or gripper feedback yet")
         obs: dict = to_action(joints, gripper.value.opening_m)
+        mode = self._mode_in(state)
+        if mode is not None:
+            self._modes_seen.setdefault(mode)
         if self.config.use_velocity_and_torque:
             velocities, torques = state.joint_velocities_rad_s, state.joint_torques_nm
             if velocities is None or torques is None:  # not after connect(), which waited for them

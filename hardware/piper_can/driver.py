@@ -124,10 +124,7 @@ class DriverSettings:
     rest_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.motion_mode not in MOTION_MODES:
-            raise ValueError(f"motion_mode must be one of {MOTION_MODES}, got {self.motion_mode!r}")
-        if not 0 <= self.speed_percent <= 100:
-            raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
+        self._check_motion()
         if len(self.rest_pose_rad) != NUM_JOINTS:
             raise ValueError(f"rest_pose_rad needs {NUM_JOINTS} angles, got {len(self.rest_pose_rad)}")
         for name, kind in (
@@ -138,6 +135,12 @@ class DriverSettings:
             value = getattr(self, name)
             if value not in set(kind):
                 raise ValueError(f"{name} must be one of {[k.value for k in kind]}, got {value!r}")
+
+    def _check_motion(self) -> None:
+        if self.motion_mode not in MOTION_MODES:
+            raise ValueError(f"motion_mode must be one of {MOTION_MODES}, got {self.motion_mode!r}")
+        if not 0 <= self.speed_percent <= 100:
+            raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
 
 
 @dataclass
@@ -159,8 +162,8 @@ class DriverConfig(DriverSettings):
 
     @classmethod
     def from_settings(cls, settings: DriverSettings, **extra: object) -> DriverConfig:
-        """Every ``DriverSettings`` field of ``settings`` (e.g. a robot config), plus ``extra``."""
-        return cls(**{f.name: getattr(settings, f.name) for f in fields(DriverSettings)}, **extra)
+        """Every ``DriverSettings`` field of ``settings`` (e.g. a robot config), replaced or added by ``extra``."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(DriverSettings)} | extra)
 
     @property
     def high_follow(self) -> bool:

@@ -19,7 +19,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators import make_teleoperator_from_config
 from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
-from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig
+from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader, PiperLeaderConfig, record_cli
 from lerobot_robot_piper.motion_metadata import MotionMode, read_motion_mode, write_motion_mode
 from piper_can import codec
 from piper_can.clock import SimulatedClock
@@ -245,8 +245,13 @@ def test_importing_the_plugin_leaves_the_process_alone():
 
 def test_follower_config_inherits_every_driver_setting_with_its_default(tmp_path):
     config = PiperFollowerConfig(calibration_dir=tmp_path)
+    recorded = {"motion_mode", "speed_percent"}  # None: as recorded, else position at 50 %
     for f in fields(DriverSettings):
-        assert getattr(config, f.name) == getattr(DriverSettings(), f.name), f.name
+        if f.name not in recorded:
+            assert getattr(config, f.name) == getattr(DriverSettings(), f.name), f.name
+    assert (config.motion_mode, config.speed_percent) == (None, None)
+    driver = config.driver_config()
+    assert (driver.motion_mode, driver.speed_percent) == (DriverSettings.motion_mode, DriverSettings.speed_percent)
     tuned = follower_config("x", tmp_path, recovery="reset", reset_settle_s=1.5, motion_mode="high_follow")
     driver = tuned.driver_config()
     assert (driver.recovery, driver.reset_settle_s, driver.high_follow) == ("reset", 1.5, True)
@@ -361,18 +366,71 @@ def test_velocity_and_torque_observations_are_optional(arms, tmp_path):
         robot.disconnect()
 
 
-def test_the_recorded_motion_mode_round_trips_and_deploys_by_request(arms, tmp_path):
+def stamped_dataset(tmp_path: Path, mode: MotionMode | None) -> tuple[Path, Path]:
+    """A dataset root (stamped with ``mode`` unless None) and a policy directory trained on it."""
     root = tmp_path / "dataset"
     (root / "meta").mkdir(parents=True)
     (root / "meta" / "info.json").write_text(json.dumps({"robot_type": "piper_follower"}))
-    assert read_motion_mode(root) is None
-    write_motion_mode(root, MotionMode("high_follow", 100))
+    if mode is not None:
+        write_motion_mode(root, mode)
     policy = tmp_path / "pretrained_model"
     policy.mkdir()
-    (policy / "train_config.json").write_text(json.dumps({"dataset": {"root": str(root)}}))
+    (policy / "train_config.json").write_text(json.dumps({"dataset": {"repo_id": "local/x", "root": str(root)}}))
+    return root, policy
+
+
+def test_the_recorded_motion_mode_round_trips_through_info_json(tmp_path):
+    root, policy = stamped_dataset(tmp_path, None)
+    assert read_motion_mode(root) is None
+    write_motion_mode(root, MotionMode("high_follow", 100))
     assert read_motion_mode(root) == read_motion_mode(policy) == MotionMode("high_follow", 100)
     assert json.loads((root / "meta" / "info.json").read_text())["robot_type"] == "piper_follower"
+    assert [p.name for p in (root / "meta").iterdir()] == ["info.json"]  # written atomically, no leftovers
+    (policy / "train_config.json").write_text(json.dumps({"dataset": {"repo_id": "local/elsewhere", "root": None}}))
+    assert read_motion_mode(policy) is None  # $HF_LEROBOT_HOME/local/elsewhere is not on this machine
 
+
+@pytest.mark.parametrize(
+    "command_line",
+    [
+        ["lerobot-replay", "--robot.type=piper_follower", "--dataset.repo_id=local/x", "--dataset.root={root}"],
+        ["lerobot-rollout", "--robot.type=piper_follower", "--policy.path={policy}", "--duration=2"],
+    ],
+)
+def test_deployment_defaults_to_the_recorded_motion_mode(arms, tmp_path, monkeypatch, command_line):
+    root, policy = stamped_dataset(tmp_path, MotionMode("high_follow", 100))
+    monkeypatch.setattr(sys, "argv", [a.format(root=root, policy=policy) for a in command_line])
+    channel = unique_virtual_channel()
+    arm = arms(channel, EmulatorConfig(firmware_text="S-V1.8-5"))
+    robot = arms.follower(follower_config(channel, tmp_path))
+    assert robot.motion_mode == MotionMode("high_follow", 100)
+    robot.connect()
+    try:
+        assert arm.firmware.mit_mode == 0xAD and arm.firmware.speed_percent == 100
+    finally:
+        robot.disconnect()
+
+
+def test_a_given_motion_mode_overrides_the_recorded_one(arms, tmp_path, monkeypatch, caplog):
+    root, _ = stamped_dataset(tmp_path, MotionMode("high_follow", 100))
+    monkeypatch.setattr(sys, "argv", ["lerobot-replay", f"--dataset.root={root}", "--robot.motion_mode=position"])
+    robot = arms.follower(follower_config("x", tmp_path, motion_mode="position"))
+    assert robot.motion_mode == MotionMode("position", 50)
+    assert "moving in position at 50 %, not in the recorded high_follow at 100 %" in caplog.text
+    assert arms.follower(follower_config("x", tmp_path, speed_percent=30)).motion_mode == MotionMode("high_follow", 30)
+
+
+def test_an_unstamped_dataset_deploys_in_position_mode_with_a_warning(tmp_path, monkeypatch, caplog):
+    root, _ = stamped_dataset(tmp_path, None)
+    monkeypatch.setattr(sys, "argv", ["lerobot-replay", f"--dataset.root={root}"])
+    assert PiperFollower(follower_config("x", tmp_path)).motion_mode == MotionMode("position", 50)
+    assert f"no PiPER motion mode recorded for {root} (record with piper-record); moving in position at 50 %" in (
+        caplog.text
+    )
+
+
+def test_motion_mode_from_names_the_recording_and_must_have_one(arms, tmp_path):
+    _, policy = stamped_dataset(tmp_path, MotionMode("high_follow", 100))
     channel = unique_virtual_channel()
     arm = arms(channel)
     robot = arms.follower(follower_config(channel, tmp_path, motion_mode_from=str(policy)))
@@ -383,16 +441,44 @@ def test_the_recorded_motion_mode_round_trips_and_deploys_by_request(arms, tmp_p
     finally:
         robot.disconnect()
     with pytest.raises(ValueError, match="no PiPER motion mode recorded for"):
-        arms.follower(follower_config(channel, tmp_path, motion_mode_from=str(tmp_path)))
+        PiperFollower(follower_config(channel, tmp_path, motion_mode_from=str(tmp_path)))
 
 
 def test_a_hardware_linked_follower_reports_the_leaders_motion_mode(arms, tmp_path):
     channel = unique_virtual_channel()
     arms(channel, EmulatorConfig(start_enabled=True))
-    arms(channel, EmulatorConfig(role="leader"))
+    leader = arms(channel, EmulatorConfig(role="leader"))
+    leader.firmware.silent = True  # no 0x151 heard yet: the mode is unknown, not ours
     robot = arms.follower(follower_config(channel, tmp_path, hardware_linked_leader=True))
     robot.connect()
     try:
+        assert robot.motion_mode is None
+        robot.get_observation()
+        assert robot.modes_seen == ()
+        leader.firmware.silent = False
         assert arms.until(lambda: robot.motion_mode == MotionMode("high_follow", 100))
+        robot.get_observation()
+        assert robot.modes_seen == (MotionMode("high_follow", 100),)
     finally:
         robot.disconnect()
+
+
+def test_piper_record_stamps_one_known_mode_or_explains_why_not(tmp_path):
+    root, _ = stamped_dataset(tmp_path, None)
+    info = root / "meta" / "info.json"
+    info.write_text(json.dumps({"total_episodes": 2}))
+
+    class Seen:
+        def __init__(self, *modes: MotionMode):
+            self.modes_seen = modes
+
+    high, position = MotionMode("high_follow", 100), MotionMode("position", 50)
+    with pytest.raises(record_cli.StampError, match="no linked leader's 0x151 mode frame was heard"):
+        record_cli._stamp(root, [Seen()], 0, None)
+    with pytest.raises(record_cli.StampError, match=r"changed while recording \(high_follow at 100 %, position"):
+        record_cli._stamp(root, [Seen(high, position)], 0, None)
+    with pytest.raises(record_cli.StampError, match="already holds 1 episodes recorded in position at 50 %, now high"):
+        record_cli._stamp(root, [Seen(high)], 1, position)
+    assert read_motion_mode(root) is None
+    record_cli._stamp(root, [Seen(high)], 0, None)
+    assert read_motion_mode(root) == high
