@@ -12,6 +12,8 @@ from lerobot.optim.schedulers import LRSchedulerConfig
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
+from lerobot_cso.policy.fast_prior import WEIGHT_FORMATS
+
 SKILL_TOKENS_KEY = "observation.skill_tokens"
 SKILL_START_KEY = "observation.skill_start"
 SKILL_STEP_KEY = "observation.skill_step"
@@ -98,6 +100,13 @@ class CSOConfig(PreTrainedConfig):
     temperature: float = 1.0
     top_k: int | None = 5
     greedy: bool = False
+    # Inference only (`select_action` / `predict_action_chunk`; the CSO hooks and training always use fp32):
+    # the prior's weights during decoding ("float32": the same numbers as training; "int8": weight-only int8,
+    # faster at batch 1 but not equivalent, see docs/benchmarks.md), and how many queued actions may remain
+    # when the next skill's decode starts in a background thread from that tick's observation (0: decode
+    # synchronously when the queue is empty, the policy's standard behaviour).
+    inference_weights: str = "float32"
+    async_decode_lead: int = 0
 
     # Training.
     n_autoencoder_steps: int = 1000
@@ -124,6 +133,10 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError("top_k must be >= 1 or None")
         if self.temperature <= 0:
             raise ValueError("temperature must be > 0")
+        if self.inference_weights not in WEIGHT_FORMATS:
+            raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
+        if not 0 <= self.async_decode_lead < self.n_action_steps:
+            raise ValueError(f"async_decode_lead must be in [0, n_action_steps={self.n_action_steps})")
 
     @property
     def downsample_factor(self) -> int:

@@ -12,12 +12,14 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
+from lerobot_cso.policy.background_decode import BackgroundDecode
 from lerobot_cso.policy.configuration_cso import (
     SKILL_COLUMNS,
     SKILL_START_KEY,
     SKILL_TOKENS_KEY,
     CSOConfig,
 )
+from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.policy.observation_encoder import ContextEncoder
 from lerobot_cso.policy.skill_autoencoder import SkillAutoencoder
 from lerobot_cso.policy.skill_prior import SkillPrior, filtered_log_probs
@@ -126,12 +128,6 @@ class CSOPolicy(PreTrainedPolicy):
             p.requires_grad_(not frozen)
         self.train(self.training)
 
-    def train(self, mode: bool = True) -> CSOPolicy:
-        super().train(mode)
-        if self.config.freeze_encoders:  # frozen encoders keep their BatchNorm statistics too
-            self.encoders.eval()
-        return self
-
     def get_optim_params(self) -> list[dict[str, Any]]:
         """AdamW groups: weight decay on linear/conv weights only; frozen parameters left out."""
         decay, no_decay = [], []
@@ -188,23 +184,53 @@ class CSOPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
+        self._next_chunk: BackgroundDecode | None = getattr(self, "_next_chunk", None)
+        if self._next_chunk is not None:  # a decode started for the previous episode is waited for, dropped
+            self._next_chunk.result()
+            self._next_chunk = None
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
+        self._sampler: FastSkillSampler | None = None  # rebuilt from the current weights on next use
+
+    def train(self, mode: bool = True) -> CSOPolicy:
+        super().train(mode)
+        if self.config.freeze_encoders:  # frozen encoders keep their BatchNorm statistics too
+            self.encoders.eval()
+        self._sampler = None  # weights may change while training: an int8 copy would go stale
+        return self
+
+    def _sample_for_inference(self, batch: dict[str, Any]) -> Tensor:
+        """Tokens for a preprocessed batch with the config's sampling and ``inference_weights``."""
+        cfg = self.config
+        if self._sampler is None:
+            self._sampler = FastSkillSampler(self.prior, cfg.inference_weights)
+        tokens, _ = self._sampler.sample(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
+        return tokens
+
+    def _executed_chunk(self, batch: dict[str, Any]) -> Tensor:
+        """Sample a skill and decode only its executed prefix (B, n_action_steps, A)."""
+        return self.decode_skills(self._sample_for_inference(batch), self.config.n_action_steps)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
-        cfg = self.config
-        tokens, _ = self.sample_skills(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
-        return self.decode_skills(tokens)
+        return self.decode_skills(self._sample_for_inference(batch))
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
-        """Decode a skill, execute its first ``n_action_steps`` actions, then replan."""
+        """Decode a skill, execute its first ``n_action_steps`` actions, then replan.
+
+        With ``async_decode_lead = L > 0`` the next skill is decoded in a background thread from the
+        observation of the tick on which L actions remain queued, so the control loop keeps ticking while it
+        runs; the queue is refilled from it when it runs dry (waiting only if the decode is not done yet).
+        """
         if not self._action_queue:
-            cfg = self.config
-            tokens, _ = self.sample_skills(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
-            chunk = self.decode_skills(tokens, cfg.n_action_steps)  # only the executed prefix is decoded
+            pending, self._next_chunk = self._next_chunk, None
+            chunk = self._executed_chunk(batch) if pending is None else pending.result()
             self._action_queue.extend(chunk.transpose(0, 1))
-        return self._action_queue.popleft()
+        action = self._action_queue.popleft()
+        lead = self.config.async_decode_lead
+        if lead and len(self._action_queue) == lead and self._next_chunk is None:
+            self._next_chunk = BackgroundDecode(self._executed_chunk, batch)
+        return action
 
     @property
     def in_autoencoder_phase(self) -> bool:
