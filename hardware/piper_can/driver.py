@@ -64,6 +64,7 @@ LOW_SPEED_PERIOD_S = 0.025  # 0x261..0x266 (the enable bits) at 40 Hz
 ENABLE_BACKOFF_START_S = 0.01
 ENABLE_BACKOFF_CAP_S = 0.2
 REST_PERIOD_S = 0.02
+MODE_RESEND_S = 0.05
 REST_TOLERANCE_RAD = 0.01
 REST_TOLERANCE_M = 0.002
 # Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
@@ -427,15 +428,20 @@ class PiperDriver:
         self._reset_sent_at = None
 
     def _select_mode(self, deadline: float) -> None:
+        """Send 0x151 until the status confirms it (resent every ``MODE_RESEND_S``: a frame can be lost)."""
         sent_at = self.clock.time()
-        self.link.send(self._mode_frame())
+        end = max(deadline, self.clock.monotonic() + FEEDBACK_PERIOD_S * 4)
 
         def confirmed(s: ArmState) -> bool:
             return s.status is not None and s.status.timestamp > sent_at and _mode_problem(s) is None
 
-        if not self.link.wait_for(confirmed, max(deadline - self.clock.monotonic(), FEEDBACK_PERIOD_S * 4)):
-            problem = _mode_problem(self.link.state()) or "no status frame"
-            raise EnableTimeoutError(f"PiPER on {self.link.where} did not confirm the 0x151 mode change: {problem}")
+        while True:
+            self.link.send(self._mode_frame())
+            if self.link.wait_for(confirmed, max(min(MODE_RESEND_S, end - self.clock.monotonic()), 0.0)):
+                break
+            if self.clock.monotonic() >= end:
+                problem = _mode_problem(self.link.state()) or "no status frame"
+                raise EnableTimeoutError(f"PiPER on {self.link.where} did not confirm the 0x151 mode change: {problem}")
         self._may_be_high_follow = self.config.high_follow
 
     def disable(self) -> bool:

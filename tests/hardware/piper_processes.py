@@ -115,6 +115,7 @@ class ChannelRecorder:
     def __init__(self, group: str, port: int) -> None:
         self.feedback = Track()
         self.commands = Track()
+        self.modes: list[bytes] = []  # the data of every 0x151 (mode) frame
         self._bus = can.Bus(interface="udp_multicast", channel=group, port=port)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -129,6 +130,8 @@ class ChannelRecorder:
             msg = self._bus.recv(timeout=0.05)
             if msg is None:
                 continue
+            if msg.arbitration_id == codec.ID_MODE_CONTROL:
+                self.modes.append(bytes(msg.data))
             for track, joint_ids, gripper_id, decode, latest in kinds:
                 if msg.arbitration_id == gripper_id:
                     track.gripper.append(Sample(msg.timestamp, (decode(gripper_id, msg.data).opening_m,)))

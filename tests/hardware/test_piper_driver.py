@@ -568,3 +568,22 @@ def test_a_command_that_fails_half_way_is_reported_as_such(rig):
         rig.driver.command(POSE, 0.01)
     assert (err.value.sent, err.value.unsent) == ((0x151, 0x155), (0x156, 0x157, 0x159))
     assert "command stopped after 2 of 5 frames (sent 0x151, 0x155; not sent 0x156, 0x157, 0x159)" in str(err.value)
+
+
+def test_a_lost_mode_frame_is_resent_until_the_status_confirms_it():
+    # A loaded bus (or a full TX queue) can lose the one 0x151 of the enable handshake.
+    with make_rig(enable=False) as rig:
+        bus = rig.driver.link._bus
+        real_send, lost = bus.send, []
+
+        def lossy_send(msg, timeout=None):
+            if msg.arbitration_id == 0x151 and not lost:
+                lost.append(msg)  # dropped on the wire
+                return
+            real_send(msg, timeout)
+
+        bus.send = lossy_send
+        rig.driver.enable()
+        assert lost and rig.arm.ctrl_mode == codec.CtrlMode.CAN
+        modes = [m.timestamp for m in rig.drain() if m.arbitration_id == 0x151]
+        assert len(modes) == 1 and modes[0] - lost[0].timestamp == pytest.approx(0.05, abs=0.0025)

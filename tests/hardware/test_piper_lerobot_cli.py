@@ -20,16 +20,20 @@ from piper_rig import unique_udp_channel
 
 pytestmark = pytest.mark.slow
 
-# Tracking tolerance: the follower retraces the scripted leader's path (up to 0.47 rad/s) within
-# 0.03 rad (1.7°) and 2 mm, never more than 0.3 s behind it. The lag budget covers the 60 Hz relay
-# (leader frame -> LeRobot -> follower command -> emulated firmware at 50 % speed) and the stalls of a
-# loaded 2-core machine; a wrong mapping, unit, sign or offset fails it.
+# Tracking tolerance: the follower retraces the scripted leader's path (up to 0.47 rad/s), judged
+# against the leader's samples of the last 0.5 s: 95 % of the time within 0.03 rad (1.7°) and 2 mm,
+# never beyond 0.1 rad and 7 mm. The lag budget covers the 60 Hz relay (leader frame -> LeRobot ->
+# follower command -> emulated firmware at 50 % speed); the loose maximum covers the stalls of a
+# loaded 2-core machine (a 100 ms stall is 0.05 rad behind). A wrong mapping, unit, sign or offset
+# (errors of the order of the 0.3-0.5 rad amplitude, or constant) still fails the 95th percentile.
 TRACKING_TOLERANCE_RAD = 0.03
 GRIPPER_TOLERANCE_M = 0.002
-MAX_LAG_S = 0.3
-# The emulators share 2 busy CPU cores with these CLIs: allow 100 ms of feedback jitter in the
-# end-to-end runs (the 15 ms default watchdog is tested in-process, with its latency measured).
-ROBUST = ["--robot.feedback_timeout_s=0.1"]
+STALL_TOLERANCE_RAD = 0.1
+STALL_TOLERANCE_M = 0.007
+MAX_LAG_S = 0.5
+# The emulators share 2 busy CPU cores with these CLIs and other work: allow 300 ms of feedback
+# jitter in the end-to-end runs (the 15 ms default watchdog is tested on simulated time, exactly).
+ROBUST = ["--robot.feedback_timeout_s=0.3"]
 TASK = "follow the leader"
 
 
@@ -87,24 +91,24 @@ def test_teleoperate_follower_tracks_the_scripted_leader(arms, home):
     start, end = commands[0].time_s + 2.0, commands[-1].time_s
     gaps = np.diff([c.time_s for c in commands])
     stats = [f"{len(commands)} commands, largest gap {gaps.max() * 1e3:.0f} ms"]
-    for follower_track, leader_track, tolerance in (
-        (follower_bus.feedback.joints, leader_bus.commands.joints, TRACKING_TOLERANCE_RAD),
-        (follower_bus.feedback.gripper, leader_bus.commands.gripper, GRIPPER_TOLERANCE_M),
+    for follower_track, leader_track, tolerance, stall_tolerance in (
+        (follower_bus.feedback.joints, leader_bus.commands.joints, TRACKING_TOLERANCE_RAD, STALL_TOLERANCE_RAD),
+        (follower_bus.feedback.gripper, leader_bus.commands.gripper, GRIPPER_TOLERANCE_M, STALL_TOLERANCE_M),
     ):
         window = [s for s in follower_track if start <= s.time_s <= end]
         assert len(window) > 300
         errors = lagged_errors(window, leader_track, MAX_LAG_S)
         stats.append(f"max {errors.max():.4f}, p95 {np.percentile(errors, 95):.4f}")
-        assert errors.max() < tolerance, stats
+        assert np.percentile(errors, 95) < tolerance and errors.max() < stall_tolerance, stats
 
 
 @pytest.fixture(scope="module")
 def recorded(arms, home) -> tuple[Path, object]:
-    """Two 2-second episodes recorded with ``lerobot-record`` into a local LeRobotDataset."""
+    """Two 2-second episodes recorded with ``piper-record`` (lerobot-record + the motion mode stamp)."""
     follower, leader = arms
     root = home / "datasets" / "piper_demo"
     out = run_cli(
-        "lerobot-record",
+        "piper-record",
         [
             "--robot.type=piper_follower",
             *follower.args("robot"),
@@ -140,6 +144,7 @@ def test_record_writes_two_episodes_of_the_leader_and_the_follower(recorded):
     root, _ = recorded
     info = json.loads((root / "meta" / "info.json").read_text())
     assert info["robot_type"] == "piper_follower" and info["total_episodes"] == 2
+    assert info["piper_motion"] == {"motion_mode": "position", "speed_percent": 50}  # the PC relay's default
     names = ["joint_1.pos", "joint_2.pos", "joint_3.pos", "joint_4.pos", "joint_5.pos", "joint_6.pos", "gripper.pos"]
     assert info["features"]["action"]["names"] == names
     assert info["features"]["observation.state"]["names"] == names
@@ -196,6 +201,67 @@ def test_replay_sends_the_recorded_actions(recorded, arms, home):
         np.abs(np.array(follower_bus.feedback.joints[-1].joints_rad) - recorded_actions[-1, :6]).max()
         < TRACKING_TOLERANCE_RAD
     )
+
+
+@pytest.fixture(scope="module")
+def linked_recording(home) -> Path:
+    """One episode recorded with ``piper-record`` from a hardware-linked pair (two emulators, one bus)."""
+    group, port = unique_udp_channel()
+    follower = start_emulator(group, port, "--start-enabled")
+    leader = start_emulator(group, port, "--role=leader")
+    root = home / "datasets" / "piper_linked"
+    try:
+        out = run_cli(
+            "piper-record",
+            [
+                "--robot.type=piper_follower",
+                *follower.args("robot"),
+                *ROBUST,
+                "--robot.hardware_linked_leader=true",
+                "--teleop.type=piper_leader",
+                *leader.args("teleop"),
+                "--dataset.repo_id=local/piper_linked",
+                f"--dataset.root={root}",
+                f"--dataset.single_task={TASK}",
+                "--dataset.num_episodes=1",
+                "--dataset.episode_time_s=2",
+                "--dataset.fps=30",
+                "--dataset.video=false",
+                "--dataset.push_to_hub=false",
+                "--display_data=false",
+                "--play_sounds=false",
+            ],
+            home,
+        )
+    finally:
+        assert leader.stop() == 0 and follower.stop() == 0
+    assert out.returncode == 0, explain(out)
+    return root
+
+
+def test_piper_record_stamps_a_linked_recording_and_replay_deploys_in_that_mode(linked_recording, arms, home):
+    info = json.loads((linked_recording / "meta" / "info.json").read_text())
+    assert info["piper_motion"] == {"motion_mode": "high_follow", "speed_percent": 100}  # the leader's 0x151
+    follower, _ = arms
+    follower_bus = ChannelRecorder(follower.group, follower.port)
+    try:
+        out = run_cli(  # plain lerobot-replay, no motion flag: the recorded mode is the default
+            "lerobot-replay",
+            [
+                "--robot.type=piper_follower",
+                *follower.args("robot"),
+                *ROBUST,
+                "--dataset.repo_id=local/piper_linked",
+                f"--dataset.root={linked_recording}",
+                "--dataset.episode=0",
+                "--play_sounds=false",
+            ],
+            home,
+        )
+    finally:
+        follower_bus.stop()
+    assert out.returncode == 0, explain(out)
+    assert len(follower_bus.modes) > 30 and set(follower_bus.modes) == {bytes.fromhex("010164ad00000000")}
 
 
 TINY_CSO = [
