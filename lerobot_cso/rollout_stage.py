@@ -3,6 +3,11 @@
 A rollout stage rolls a saved policy out on the tasks of one world (:mod:`lerobot_cso.rollout.world`):
 ``--tasks`` names them, ``--sampling.temperature/top_k/greedy`` say how skills are drawn, ``--num_envs``,
 ``--vectorization`` and ``--max_steps`` shape the rollouts.
+
+``--robot.type=...`` (a LeRobot robot, e.g. ``piper_follower``) runs the stage on that robot with an operator in
+the loop instead (:mod:`lerobot_cso.rollout.robot`): ``--tasks`` is then the task instruction the policy was
+trained with, ``--teleop.type=...`` optionally drives the arm while the operator arranges the scene,
+``--operator.*`` says who labels the episodes and how long they run, ``--display_data=true`` shows them in rerun.
 """
 
 from __future__ import annotations
@@ -11,9 +16,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
+import lerobot.scripts.lerobot_record  # noqa: F401  (registers LeRobot's robots, teleoperators and cameras)
+from lerobot.robots.config import RobotConfig
+from lerobot.teleoperators.config import TeleoperatorConfig
+
 from lerobot_cso.checkpoints import PolicyPathConfig
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout.engine import Sampling
+from lerobot_cso.rollout.operator import OperatorConfig
 from lerobot_cso.rollout.pool import VECTORIZATIONS
 from lerobot_cso.rollout.world import World, world_for
 
@@ -34,9 +44,20 @@ class RolloutStageConfig(PolicyPathConfig):
     vectorization: str = "processes"
     # Episode cap of the rollouts (a failure runs to the cap); null: the world's horizon.
     max_steps: int | None = None
+    # A LeRobot robot to roll out on (with an operator) instead of a simulated world.
+    robot: RobotConfig | None = None
+    # Optional teleoperator that moves the robot while the operator arranges each scene.
+    teleop: TeleoperatorConfig | None = None
+    operator: OperatorConfig = field(default_factory=OperatorConfig)
+    # Show cameras, commanded vs measured joints and the current skill in rerun (robot rollouts).
+    display_data: bool = False
 
     def world(self) -> World:
-        """The world the tasks belong to."""
+        """The world the tasks belong to: the robot's when ``--robot.type`` is given."""
+        if self.robot is not None:
+            from lerobot_cso.rollout.robot import RobotWorld
+
+            return RobotWorld(self)
         return world_for(self.tasks)
 
     def horizon(self) -> int:
@@ -47,6 +68,13 @@ class RolloutStageConfig(PolicyPathConfig):
         """Check the shared settings; returns the resolved task list. Raises ``UsageError``."""
         if self.policy is None or self.policy.pretrained_path is None:
             raise UsageError(f"--policy.path is required ({self.policy_role})")
+        if self.robot is not None:
+            from lerobot_cso.rollout.robot import check_policy_fits
+
+            self.operator.validate()
+            if self.output_dir is None:
+                raise UsageError("--output_dir is required with --robot.type (the episodes are journaled there)")
+            check_policy_fits(self.robot, self.policy)
         world = self.world()
         try:
             tasks = world.resolve_tasks(self.tasks)
