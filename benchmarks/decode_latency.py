@@ -1,9 +1,10 @@
-"""Decode latency of one skill on CPU: 8 tokens from the prior + the decoder → 32 actions.
+"""Decode latency of one skill on CPU: context + 8 tokens from the prior + decoding the executed 8 actions.
 
-Full-size QueST policy (prior 6×384, autoencoder 256), MetaWorld shapes (state 39, action 4). Reports median and
-p99 over repeated calls at batch 1 and 16, with and without the KV cache, decoding the whole chunk (32) or only
-the executed prefix (8, what ``select_action`` and the rollout engine decode). Run:
-    ./run.sh python benchmarks/decode_latency.py [--iters 300] [--threads 2]
+Full-size QueST policy (prior 6×384, autoencoder 256), MetaWorld shapes (state 39, action 4). Compares, in one
+run and interleaved call by call (so load changes hit every path alike), the prior's reference sampler
+(``sample_skills``, fp32, KV cache) with the inference sampler ``select_action`` uses (``FastSkillSampler``:
+fp32, and weight-only int8), at batch 1 and 16: median and p99 latency, and skills/s at batch 16. Run:
+    ./run.sh python benchmarks/decode_latency.py [--iters 200] [--threads 1]
 """
 
 from __future__ import annotations
@@ -13,33 +14,49 @@ import platform
 import shlex
 import sys
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
+from torch import Tensor
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.policy.fast_prior import FastSkillSampler
+
+WARMUP = 10
 
 
-def measure(policy: CSOPolicy, batch_size: int, use_cache: bool, n_actions: int, iters: int) -> tuple[float, float]:
+def paths(policy: CSOPolicy) -> dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]]:
+    """Token samplers by name, each (context) → (tokens, log-probs), top-k 5."""
+    fast = {w: FastSkillSampler(policy.prior, w) for w in ("float32", "int8")}
+    return {
+        "reference fp32 (sample_skills)": lambda c: policy.sample_skills(c, top_k=5),
+        "fast fp32": lambda c: fast["float32"].sample(c, top_k=5),
+        "fast int8": lambda c: fast["int8"].sample(c, top_k=5),
+    }
+
+
+def measure(policy: CSOPolicy, batch_size: int, iters: int) -> dict[str, np.ndarray]:
+    """Milliseconds per skill for every path, interleaved."""
     batch = {"observation.state": torch.randn(batch_size, 39), "task": ["reach"] * batch_size}
-    times = []
+    samplers = paths(policy)
+    times: dict[str, list[float]] = {name: [] for name in samplers}
     with torch.inference_mode():
-        for i in range(iters + 20):
-            start = time.perf_counter()
-            context = policy.encode_context(batch)
-            tokens, _ = policy.sample_skills(context, top_k=5, use_cache=use_cache)
-            policy.decode_skills(tokens, n_actions)
-            if i >= 20:  # warm-up
-                times.append(time.perf_counter() - start)
-    ms = np.array(times) * 1000
-    return float(np.median(ms)), float(np.percentile(ms, 99))
+        for i in range(iters + WARMUP):
+            for name, sample in samplers.items():
+                start = time.perf_counter()
+                tokens, _ = sample(policy.encode_context(batch))
+                policy.decode_skills(tokens, policy.config.n_action_steps)
+                if i >= WARMUP:
+                    times[name].append(time.perf_counter() - start)
+    return {name: np.array(t) * 1000 for name, t in times.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iters", type=int, default=300)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--iters", type=int, default=200)
+    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -52,12 +69,16 @@ def main() -> None:
     policy = CSOPolicy(config).eval()
     print(f"# command: python {shlex.join(sys.argv)}")
     print(f"# torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
-    print("| batch | KV cache | decoded actions | median ms | p99 ms |")
-    print("|---:|:---:|---:|---:|---:|")
+    with open("/proc/loadavg") as f:
+        print(f"# load average before: {f.read().strip()}")
+    print("| batch | path | median ms | p99 ms | skills/s (median) |")
+    print("|---:|:---|---:|---:|---:|")
     for batch_size in (1, 16):
-        for use_cache, n_actions in ((True, 32), (False, 32), (True, config.n_action_steps)):
-            median, p99 = measure(policy, batch_size, use_cache, n_actions, args.iters)
-            print(f"| {batch_size} | {'yes' if use_cache else 'no'} | {n_actions} | {median:.2f} | {p99:.2f} |")
+        for name, ms in measure(policy, batch_size, args.iters).items():
+            median, p99 = float(np.median(ms)), float(np.percentile(ms, 99))
+            print(f"| {batch_size} | {name} | {median:.2f} | {p99:.2f} | {batch_size * 1000 / median:.0f} |")
+    with open("/proc/loadavg") as f:
+        print(f"# load average after: {f.read().strip()}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,122 @@
+"""Control-loop period of ``lerobot-rollout`` with a full-size cso policy on the simulated PiPER, at 30 Hz.
+
+Saves an untrained full-size policy (prior 6×384, autoencoder 256) with the PiPER's 7-D state and action, starts
+``piper-emulator`` on a private udp_multicast channel, runs ``lerobot-rollout --strategy.type=base`` against it
+once per variant (synchronous decode, and the background decode started ``--lead`` ticks before the queue runs
+dry), and measures the loop period from the kernel receive times of the joint commands on the bus. Run:
+    ./run.sh python benchmarks/rollout_loop_period.py [--duration 60] [--lead 3] [--weights float32]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import make_pre_post_processors
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "hardware"))
+from piper_processes import ChannelRecorder, explain, run_cli, start_emulator  # noqa: E402
+from piper_rig import unique_udp_channel  # noqa: E402
+
+from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: E402
+
+TASK = "hold still"
+BINS_MS = (0, 30, 32, 33, 34, 35, 36.7, 40, 50, 70, 100, 1000, float("inf"))
+
+
+def save_full_size_policy(path: Path, lead: int, weights: str) -> Path:
+    """Default-size untrained cso policy for the PiPER (state and action 7-D), saved with processors."""
+    torch.manual_seed(0)
+    config = CSOConfig(
+        device="cpu",
+        push_to_hub=False,
+        n_autoencoder_steps=0,
+        tasks=[TASK],
+        async_decode_lead=lead,
+        inference_weights=weights,
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+    )
+    # Actions stay within ±0.1 rad of home (gripper 0 … 2 cm): the untrained policy only jitters.
+    stats = {
+        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
+        "action": {"min": torch.tensor([-0.1] * 6 + [0.0]), "max": torch.tensor([0.1] * 6 + [0.02])},
+    }
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    CSOPolicy(config).save_pretrained(path)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    return path
+
+
+def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int) -> np.ndarray:
+    """Run lerobot-rollout against a fresh emulator; periods between consecutive joint commands (ms)."""
+    follower = start_emulator(*unique_udp_channel())
+    recorder = ChannelRecorder(follower.group, follower.port)
+    try:
+        out = run_cli(
+            "lerobot-rollout",
+            [
+                "--strategy.type=base",
+                f"--policy.path={checkpoint}",
+                "--robot.type=piper_follower",
+                *follower.args("robot"),
+                "--robot.feedback_timeout_s=1.0",  # the emulator shares the CPUs with the policy
+                f"--task={TASK}",
+                f"--duration={duration}",
+                f"--fps={fps}",
+                "--device=cpu",
+                "--return_to_initial_position=false",
+            ],
+            home,
+            timeout=duration + 240,
+        )
+    finally:
+        recorder.stop()
+        follower.stop()
+    if out.returncode != 0:
+        raise RuntimeError(explain(out))
+    times = np.array([c.time_s for c in recorder.commands.joints])
+    times = times[times >= times[0] + 1.0]  # the first second: connection and the first decode
+    return np.diff(times) * 1000
+
+
+def report(name: str, periods: np.ndarray, limit_ms: float) -> None:
+    counts, _ = np.histogram(periods, bins=BINS_MS)
+    print(
+        f"\n{name}: {len(periods)} periods, median {np.median(periods):.2f} ms, p99 {np.percentile(periods, 99):.2f}"
+        f" ms, max {periods.max():.2f} ms, over {limit_ms:.1f} ms: {(periods > limit_ms).sum()}"
+    )
+    print("| period ms | " + " | ".join(f"{a:g}–{b:g}" for a, b in zip(BINS_MS, BINS_MS[1:], strict=False)) + " |")
+    print("|---|" + "---:|" * len(counts))
+    print("| ticks | " + " | ".join(str(c) for c in counts) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0)
+    parser.add_argument("--fps", type=int, default=30)
+    parser.add_argument("--lead", type=int, default=3)
+    parser.add_argument("--weights", default="float32")
+    args = parser.parse_args()
+    limit_ms = 1.1 * 1000 / args.fps
+    print(f"# command: python {shlex.join(sys.argv)}")
+    with open("/proc/loadavg") as f:
+        print(f"# load average before: {f.read().strip()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        home = Path(tmp)
+        for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
+            checkpoint = save_full_size_policy(home / f"policy_lead{lead}", lead, args.weights)
+            report(f"{name} ({args.weights})", loop_periods_ms(checkpoint, home, args.duration, args.fps), limit_ms)
+            with open("/proc/loadavg") as f:
+                print(f"# load average after: {f.read().strip()}")
+
+
+if __name__ == "__main__":
+    main()
