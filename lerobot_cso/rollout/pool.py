@@ -1,5 +1,7 @@
-"""The MetaWorld rollout backend: a pool of envs (a gymnasium vector env) that runs a queue of episodes under
-one controller (:class:`~lerobot_cso.rollout.backend.RolloutBackend`).
+"""The simulated-world rollout backend: a pool of envs (a gymnasium vector env) that runs a queue of episodes
+under one controller (:class:`~lerobot_cso.rollout.backend.RolloutBackend`). MetaWorld's envs by default; any
+env factory whose envs speak the same reset protocol (``options``: ``task``, ``park``, optionally
+``render_every``), e.g. :class:`~lerobot_cso.envs.libero_env.CSOLiberoEnv`.
 
 The vector env runs with ``autoreset_mode=DISABLED``: a slot whose episode ended is parked at once, then reset
 (``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, when one may
@@ -15,6 +17,10 @@ so that each env builds few MuJoCo models.
 ``vectorization="processes"`` (default) splits the envs into ``workers`` processes (one per core by default),
 each stepping its shard in a ``SyncVectorEnv`` (:class:`~lerobot_cso.rollout.sharded.ShardedVectorEnv`);
 ``"sync"`` steps all envs in this process; ``"async"`` is gymnasium's ``AsyncVectorEnv``, one process per env.
+
+``frames="decisions"`` asks the envs to render cameras only on the steps where episodes take decisions
+(``render_every=start_every``) and records no images in the traces: what evaluation and SPO need, which keep
+only the policy's contexts. ``"all"`` (default) records every frame, as an R-SFT buffer needs.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from lerobot_cso.rollout.sharded import ShardedVectorEnv, last_step, step_chunk
 
 Vectorization = Literal["processes", "sync", "async"]
 VECTORIZATIONS: tuple[str, ...] = ("processes", "sync", "async")
+Frames = Literal["all", "decisions"]
 
 
 def default_workers() -> int:
@@ -109,7 +116,11 @@ class _Scheduler:
 
 
 class EnvPool:
-    """``num_envs`` MetaWorld envs behind one gymnasium vector env, fed from a job queue."""
+    """``num_envs`` envs (MetaWorld's unless ``env_factory`` is given) behind one vector env, fed from a job queue.
+
+    ``env_factory`` builds one env (picklable, for worker processes); ``check_task`` raises ``ValueError`` for a
+    task name the envs do not know.
+    """
 
     def __init__(
         self,
@@ -119,18 +130,26 @@ class EnvPool:
         max_steps: int = HORIZON,
         vectorization: Vectorization = "processes",
         workers: int | None = None,
+        env_factory: Callable[[], gym.Env] | None = None,
+        check_task: Callable[[str], object] = check_task,
+        frames: Frames = "all",
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if vectorization not in VECTORIZATIONS:
             raise ValueError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{vectorization}'")
-        check_cameras(cameras)
+        if frames not in ("all", "decisions"):
+            raise ValueError(f"frames must be 'all' or 'decisions', got '{frames}'")
         self.num_envs = num_envs
         self.cameras = tuple(cameras)
         self.max_steps = max_steps
-        # The task given here is only the initial one; every job resets its slot onto its own task.
-        make = partial(CSOMetaWorldEnv, "reach-v3", self.cameras, image_size, max_steps)
-        fns: list[Callable[[], gym.Env]] = [make] * num_envs
+        self.frames = frames
+        self._check_task = check_task
+        if env_factory is None:
+            check_cameras(cameras)
+            # The task given here is only the initial one; every job resets its slot onto its own task.
+            env_factory = partial(CSOMetaWorldEnv, "reach-v3", self.cameras, image_size, max_steps)
+        fns: list[Callable[[], gym.Env]] = [env_factory] * num_envs
         workers = default_workers() if workers is None else workers
         if vectorization == "processes" and num_envs > 1 and workers > 1:
             self.vec: gym.vector.VectorEnv = ShardedVectorEnv(fns, workers=workers)
@@ -160,7 +179,9 @@ class EnvPool:
     ) -> Iterator[tuple[int, Trace]]:
         """Run every job to its end, yielding ``(job index, trace)`` as each episode finishes."""
         for task in {job.task for job in jobs}:
-            check_task(task)
+            self._check_task(task)
+        recorded = self.cameras if self.frames == "all" else ()
+        start_options = {} if self.frames == "all" else {"render_every": start_every}
         scheduler = _Scheduler(jobs)
         # Forget the previous run's slot tasks: the same jobs then always get the same slots, hence the same
         # policy batches (float results can depend on a row's batch), and a call is reproducible.
@@ -180,10 +201,11 @@ class EnvPool:
                         starting.setdefault(job.task, []).append((slot, index, job))
                 for task, entries in starting.items():
                     slots = [slot for slot, _, _ in entries]
-                    obs = self._reset(slots, {"task": task}, [job.init_seed for _, _, job in entries])
+                    options = {"task": task, **start_options}
+                    obs = self._reset(slots, options, [job.init_seed for _, _, job in entries])
                     for slot, index, job in entries:
                         running[slot] = (index, job)
-                        recorders[slot] = _Recorder(self.cameras)
+                        recorders[slot] = _Recorder(recorded)
                         parked[slot] = False
                         self._tasks[slot] = task
                         controller.start(slot, job)
