@@ -41,6 +41,7 @@ from lerobot_cso.envs.config import parse_cameras
 from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
+from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 
 SPEC_FILE = "meta/cso_demos.json"
 TASK_KEY = "metaworld.task"
@@ -276,6 +277,29 @@ def generate_demos(cfg: DemosConfig) -> dict[str, Any]:
             for task in tasks
         },
     }
+
+
+class DemosStage:
+    """The pipeline's demo stage: the dataset at ``cfg.output_dir``."""
+
+    name = "demos"
+    redo_on_change = False
+
+    def __init__(self, cfg: DemosConfig) -> None:
+        self.cfg = cfg
+
+    def spec(self) -> dict[str, Any]:
+        # num_envs only splits the work: the dataset is the same bit for bit.
+        return {"tasks": self.cfg.validate(), "demos": settings_spec(self.cfg, exclude=(*PIPELINE_FIELDS, "num_envs"))}
+
+    def output(self) -> Path:
+        return self.cfg.output_dir
+
+    def complete(self) -> bool:
+        return (self.cfg.output_dir / SPEC_FILE).is_file()  # written inside the dataset before it is swapped in
+
+    def run(self) -> dict[str, Any]:
+        return generate_demos(self.cfg)
 
 
 @parser.wrap()

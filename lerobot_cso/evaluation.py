@@ -24,6 +24,7 @@ from lerobot.configs import parser
 
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout_stage import RolloutStageConfig
+from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 
 
 @dataclass
@@ -181,6 +182,33 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     }
     write_outputs(cfg.output_dir, rows, record)
     return rows
+
+
+class EvalStage:
+    """A pipeline evaluation (``eval_<label>``), redone whenever its settings or its policy change."""
+
+    redo_on_change = True
+
+    def __init__(self, label: str, cfg: EvalConfig) -> None:
+        self.name, self.cfg = f"eval_{label}", cfg
+
+    def spec(self) -> dict[str, Any]:
+        return {"eval": settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
+
+    def output(self) -> Path:
+        return self.cfg.output_dir
+
+    def complete(self) -> bool:
+        return (self.cfg.output_dir / "eval.json").is_file()
+
+    def run(self) -> dict[str, Any]:
+        rows = evaluate(self.cfg)
+        print(markdown_table(rows), flush=True)
+        return rows
+
+    def success_rate(self) -> dict[str, Any]:
+        """The summary rows of the finished evaluation."""
+        return json.loads((self.cfg.output_dir / "eval.json").read_text())["success_rate"]
 
 
 @parser.wrap()

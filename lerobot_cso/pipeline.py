@@ -1,16 +1,19 @@
 """``lerobot-cso pipeline --config_path=configs/<file>.yaml``: demos → IL → eval → R-SFT → eval → SPO → eval.
 
-One draccus config holds a section per stage: ``demos`` (:class:`~lerobot_cso.demos.DemosConfig`), ``il``
-(:class:`ILConfig`: the ``lerobot-train`` run), ``eval`` (:class:`~lerobot_cso.evaluation.EvalConfig`, used
-for all three evaluations), ``rsft`` (:class:`~lerobot_cso.cso.rsft.RSFTConfig`) and ``spo``
-(:class:`~lerobot_cso.cso.spo.SPOConfig`). The top-level ``tasks`` and ``output_dir`` propagate to every
-stage (setting them, or ``policy``, inside a section is refused); each stage's policy is the previous one's.
+One draccus config holds a section per stage: ``demos`` (:class:`~lerobot_cso.demos.DemosConfig`),
+``il`` (:class:`~lerobot_cso.il.ILConfig`: the ``lerobot-train`` run), ``eval``
+(:class:`~lerobot_cso.evaluation.EvalConfig`, used for all three evaluations), ``rsft``
+(:class:`~lerobot_cso.cso.rsft.RSFTConfig`) and ``spo`` (:class:`~lerobot_cso.cso.spo.SPOConfig`). The
+top-level ``tasks`` and ``output_dir`` propagate to every stage (setting them, or ``policy``, inside a
+section is refused); each stage's policy is the previous one's.
 
 Layout of ``output_dir``: ``demos/`` (the LeRobotDataset), ``il/`` (``lerobot-train``'s output dir),
 ``rsft/``, ``spo/``, ``eval/{il,rsft,cso}/``, ``stages/<stage>.json`` (the settings each stage ran with,
 whether it completed, and when), and the final ``results.md`` / ``results.json``.
 
-Resuming: a stage whose record says complete and whose output exists is skipped; an unfinished one is run
+Every stage implements :class:`~lerobot_cso.stage.Stage` (its spec, its output, whether it is complete,
+run); :meth:`Pipeline.execute` keeps the records. Resuming: a stage whose record says complete and that is
+complete is skipped; an unfinished one is run
 again and resumes by itself (demos and R-SFT from their journals, SPO from its last iteration, IL with
 ``lerobot-train --resume=true`` from its last checkpoint). A stage whose settings, or whose upstream stage's
 completion, differ from the record is refused (evaluations are simply redone), so stale results are never
@@ -19,13 +22,8 @@ mixed with new ones.
 
 import dataclasses
 import datetime as dt
-import json
-import os
-import shutil
-import subprocess
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,60 +35,19 @@ import yaml
 from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
 
-from lerobot_cso.cso.rsft import RSFTConfig
-from lerobot_cso.cso.spo import SPOConfig
-from lerobot_cso.demos import DemosConfig
-from lerobot_cso.durable import write_atomic
+from lerobot_cso.cso.rsft import RSFTConfig, RSFTStage
+from lerobot_cso.cso.spo import SPOConfig, SPOStage
+from lerobot_cso.demos import DemosConfig, DemosStage
+from lerobot_cso.durable import read_json, write_atomic, write_json
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
-from lerobot_cso.evaluation import EvalConfig
+from lerobot_cso.evaluation import EvalConfig, EvalStage
+from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
+from lerobot_cso.stage import PIPELINE_FIELDS, Stage
 
-PROPAGATED = ("tasks", "output_dir", "policy")  # set by the pipeline, never inside a section
-SECTIONS = {"demos": PROPAGATED[:2], "eval": PROPAGATED, "rsft": PROPAGATED, "spo": PROPAGATED}
-# Policy fields the pipeline sets itself (or that the dataset fills in).
-RESERVED_POLICY_KEYS = ("type", "path", "pretrained_path", "tasks", "n_autoencoder_steps")
+SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
 EVALUATED = {"il": "IL", "rsft": "R-SFT", "cso": "CSO"}  # evaluation name → table column
-
-
-@dataclass
-class ILConfig:
-    """The imitation-learning stage: ``lerobot-train --policy.type=cso`` on the demos, as a subprocess."""
-
-    steps: int = 20_000
-    # The first n_autoencoder_steps train the skill autoencoder, the rest the skill prior.
-    n_autoencoder_steps: int = 5_000
-    batch_size: int = 64
-    num_workers: int = 2
-    save_freq: int = 5_000
-    log_freq: int = 200
-    seed: int = 1000
-    # Policy settings, passed as --policy.<key>=<value> (dims, learning rate, device, ...).
-    policy: dict[str, Any] = field(default_factory=dict)
-    # Further lerobot-train arguments, verbatim (e.g. "--wandb.enable=true").
-    extra_args: list[str] = field(default_factory=list)
-
-    def validate(self) -> None:
-        if self.steps < 1 or self.batch_size < 1 or self.save_freq < 1 or self.log_freq < 1:
-            raise UsageError("il.steps, il.batch_size, il.save_freq and il.log_freq must be >= 1")
-        if not 0 <= self.n_autoencoder_steps < self.steps:
-            raise UsageError(
-                f"il.n_autoencoder_steps must be in [0, il.steps={self.steps}) so that the prior trains too, "
-                f"got {self.n_autoencoder_steps}"
-            )
-        if self.num_workers < 0:
-            raise UsageError(f"il.num_workers must be >= 0, got {self.num_workers}")
-        known = {f.name for f in dataclasses.fields(CSOConfig)}
-        unknown = sorted(k for k in self.policy if k not in known)
-        if unknown:
-            raise UsageError(f"il.policy: unknown cso policy setting(s) {', '.join(unknown)}")
-        reserved = sorted(k for k in self.policy if k in RESERVED_POLICY_KEYS)
-        if reserved:
-            raise UsageError(f"il.policy: {', '.join(reserved)} cannot be set here (the pipeline sets it)")
-        try:
-            CSOConfig(**{k: v for k, v in self.policy.items() if k != "push_to_hub"} | {"device": "cpu"})
-        except (TypeError, ValueError) as e:
-            raise UsageError(f"il.policy: {e}") from None
 
 
 @dataclass
@@ -111,25 +68,6 @@ class PipelineConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     rsft: RSFTConfig = field(default_factory=RSFTConfig)
     spo: SPOConfig = field(default_factory=SPOConfig)
-
-
-def _cli_value(value: Any) -> str:
-    """A yaml value as a draccus command-line value (lists, mappings and booleans as JSON)."""
-    return (
-        json.dumps(value, separators=(",", ":"))
-        if isinstance(value, (list, dict, bool)) or value is None
-        else str(value)
-    )
-
-
-def _settings(section: Any, runtime: tuple[str, ...] = ()) -> dict[str, Any]:
-    """A section's settings as plain JSON data, without the propagated fields and the ``runtime`` ones
-    (those that do not change the stage's result, so a rerun may change them, e.g. to resume with less memory)."""
-    skip = runtime if isinstance(section, ILConfig) else (*PROPAGATED, *runtime)
-    data = {f.name: getattr(section, f.name) for f in dataclasses.fields(section) if f.name not in skip}
-    return json.loads(
-        json.dumps(data, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
-    )
 
 
 def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
@@ -211,25 +149,16 @@ class Pipeline:
     def record_path(self, stage: str) -> Path:
         return self.out / "stages" / f"{stage}.json"
 
-    def record(self, stage: str) -> dict[str, Any] | None:
-        path = self.record_path(stage)
-        return json.loads(path.read_text()) if path.is_file() else None
-
     def finished_at(self, stage: str) -> str:
-        return self.record(stage)["finished_at"]
+        return read_json(self.record_path(stage))["finished_at"]
 
-    def stage(
-        self,
-        name: str,
-        spec: dict[str, Any],
-        output: Path,
-        complete: Path,
-        run: Callable[[], Any],
-        redo_on_change: bool = False,
-    ) -> Any:
-        """Run ``run`` unless its record (same ``spec``) says it completed and ``complete`` exists."""
-        record = self.record(name)
-        if record is not None and record["spec"] != spec and output.exists() and not redo_on_change:
+    def execute(self, stage: Stage, after: str | None = None) -> Any:
+        """Run ``stage`` unless its record (same spec, ``after`` the same run of its upstream stage) says it
+        completed and it is complete; a changed spec over an existing output is refused unless the stage
+        is simply redone (``redo_on_change``)."""
+        spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
+        output, record = stage.output(), read_json(self.record_path(stage.name))
+        if record is not None and record["spec"] != spec and output.exists() and not stage.redo_on_change:
             old, new = _flatten(record["spec"]), _flatten(spec)
             changed = ", ".join(
                 f"{k}: {old.get(k)} → {new.get(k)}" for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)
@@ -238,17 +167,17 @@ class Pipeline:
                 f"{output} was made with other settings or inputs ({changed}); delete it and the stages after it, "
                 "or choose another output_dir"
             )
-        if record is not None and record["spec"] == spec and record["complete"] and complete.exists():
-            print(f"[pipeline] {name}: complete, skipped ({output})", flush=True)
-            self.seconds[name] = record["seconds"]
+        if record is not None and record["spec"] == spec and record["complete"] and stage.complete():
+            print(f"[pipeline] {stage.name}: complete, skipped ({output})", flush=True)
+            self.seconds[stage.name] = record["seconds"]
             return record["summary"]
-        print(f"[pipeline] {name}: running → {output}", flush=True)
-        self.record_path(name).parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(self.record_path(name), json.dumps({"spec": spec, "complete": False}, indent=2).encode())
+        print(f"[pipeline] {stage.name}: running → {output}", flush=True)
+        self.record_path(stage.name).parent.mkdir(parents=True, exist_ok=True)
+        write_json(self.record_path(stage.name), {"spec": spec, "complete": False})
         started = time.perf_counter()
-        summary = run()
+        summary = stage.run()
         seconds = time.perf_counter() - started
-        self.seconds[name] = seconds
+        self.seconds[stage.name] = seconds
         finished = {
             "spec": spec,
             "complete": True,
@@ -256,98 +185,14 @@ class Pipeline:
             "seconds": seconds,
             "summary": summary,
         }
-        write_atomic(self.record_path(name), json.dumps(finished, indent=2, default=str).encode())
-        print(f"[pipeline] {name}: done in {seconds:.0f} s", flush=True)
+        write_json(self.record_path(stage.name), finished)
+        print(f"[pipeline] {stage.name}: done in {seconds:.0f} s", flush=True)
         return summary
 
-    # Stages.
-    def run_demos(self) -> Path:
-        from lerobot_cso.demos import generate_demos
-
-        cfg = self.demos_config()
-        spec = {"tasks": self.tasks, "demos": _settings(cfg, runtime=("num_envs",))}
-        self.stage("demos", spec, cfg.output_dir, cfg.output_dir / "meta" / "info.json", lambda: generate_demos(cfg))
-        return cfg.output_dir
-
-    def run_il(self, dataset: Path) -> Path:
-        il = self.cfg.il
-        out = self.out / "il"
-        policy = out / "checkpoints" / "last" / "pretrained_model"
-        spec = {
-            "il": _settings(il, runtime=("num_workers", "save_freq", "log_freq")),
-            "after": {"demos": self.finished_at("demos")},
-        }
-
-        def steps_done() -> int:
-            path = out / "checkpoints" / "last" / "training_state" / "training_step.json"
-            return json.loads(path.read_text())["step"] if path.is_file() else 0
-
-        def train() -> dict[str, Any]:
-            common = [
-                f"--output_dir={out}",
-                f"--dataset.root={dataset}",
-                f"--dataset.repo_id={self.cfg.demos.repo_id}",
-                "--dataset.video_backend=pyav",  # no videos in the demos; skips probing torchcodec
-                f"--steps={il.steps}",
-                f"--num_workers={il.num_workers}",
-            ]
-            if steps_done() >= il.steps:
-                args = None  # finished; only its record was missing
-            elif (policy / "train_config.json").is_file():
-                args = ["--resume=true", f"--config_path={policy / 'train_config.json'}", *common]
-            else:
-                shutil.rmtree(out, ignore_errors=True)  # killed before its first checkpoint: start over
-                settings = {"push_to_hub": False, **il.policy, "n_autoencoder_steps": il.n_autoencoder_steps}
-                args = [
-                    "--policy.type=cso",
-                    *common,
-                    f"--batch_size={il.batch_size}",
-                    f"--save_freq={min(il.save_freq, il.steps)}",
-                    f"--log_freq={il.log_freq}",
-                    f"--seed={il.seed}",
-                    *(f"--policy.{k}={_cli_value(v)}" for k, v in settings.items()),
-                    *il.extra_args,
-                ]
-            if args is not None:
-                _lerobot_train(args, self.cfg.torch_threads)
-            if steps_done() < il.steps:
-                raise RuntimeError(f"lerobot-train stopped at step {steps_done()} of {il.steps}")
-            return {"steps": steps_done(), "checkpoint": str(policy)}
-
-        self.stage("il", spec, out, policy / "config.json", train)
-        return policy
-
-    def run_eval(self, name: str, policy_path: Path, upstream: str) -> dict[str, Any]:
-        from lerobot_cso.evaluation import evaluate, markdown_table
-
-        cfg = self.eval_config(name, policy_config(policy_path))
-        spec = {"eval": _settings(cfg), "after": {upstream: self.finished_at(upstream)}}
-
-        def run() -> dict[str, Any]:
-            rows = evaluate(cfg)
-            print(markdown_table(rows), flush=True)
-            return rows
-
-        self.stage(f"eval_{name}", spec, cfg.output_dir, cfg.output_dir / "eval.json", run, redo_on_change=True)
-        return json.loads((cfg.output_dir / "eval.json").read_text())["success_rate"]
-
-    def run_rsft(self, il_policy: Path) -> Path:
-        from lerobot_cso.cso.rsft import run_rsft
-
-        cfg = self.rsft_config(policy_config(il_policy))
-        spec = {"rsft": _settings(cfg), "after": {"il": self.finished_at("il")}}
-        out = cfg.output_dir / "pretrained_model"
-        self.stage("rsft", spec, cfg.output_dir, out / "config.json", lambda: run_rsft(cfg))
-        return out
-
-    def run_spo(self, rsft_policy: Path) -> Path:
-        from lerobot_cso.cso.spo import run_spo
-
-        cfg = self.spo_config(policy_config(rsft_policy))
-        spec = {"spo": _settings(cfg), "after": {"rsft": self.finished_at("rsft")}}
-        out = cfg.output_dir / "pretrained_model"
-        self.stage("spo", spec, cfg.output_dir, out / "config.json", lambda: run_spo(cfg))
-        return out
+    def evaluate(self, label: str, policy: Path, upstream: str) -> dict[str, Any]:
+        stage = EvalStage(label, self.eval_config(label, policy_config(policy)))
+        self.execute(stage, after=upstream)
+        return stage.success_rate()
 
     def run(self) -> dict[str, Any]:
         """All stages in order; returns the results (also written to ``results.md`` / ``results.json``)."""
@@ -355,13 +200,17 @@ class Pipeline:
         if self.cfg.torch_threads:
             torch.set_num_threads(self.cfg.torch_threads)
         self.out.mkdir(parents=True, exist_ok=True)
-        dataset = self.run_demos()
-        il = self.run_il(dataset)
-        rates = {"il": self.run_eval("il", il, "il")}
-        rsft = self.run_rsft(il)
-        rates["rsft"] = self.run_eval("rsft", rsft, "rsft")
-        cso = self.run_spo(rsft)
-        rates["cso"] = self.run_eval("cso", cso, "spo")
+        demos = DemosStage(self.demos_config())
+        self.execute(demos)
+        il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.cfg.torch_threads)
+        self.execute(il, after="demos")
+        rates = {"il": self.evaluate("il", il.policy(), "il")}
+        rsft = RSFTStage(self.rsft_config(policy_config(il.policy())))
+        self.execute(rsft, after="il")
+        rates["rsft"] = self.evaluate("rsft", rsft.policy(), "rsft")
+        spo = SPOStage(self.spo_config(policy_config(rsft.policy())))
+        self.execute(spo, after="rsft")
+        rates["cso"] = self.evaluate("cso", spo.policy(), "spo")
         table = results_table(self.tasks, rates)
         results = {
             "tasks": self.tasks,
@@ -374,12 +223,12 @@ class Pipeline:
                     strict=True,
                 )
             ),
-            "checkpoints": {"il": str(il), "rsft": str(rsft), "cso": str(cso)},
+            "checkpoints": {"il": str(il.policy()), "rsft": str(rsft.policy()), "cso": str(spo.policy())},
             "eval": {"episodes_per_task": self.cfg.eval.episodes_per_task, "seeds": self.cfg.eval.seeds},
             "stage_seconds": self.seconds,
             "table": table,
         }
-        write_atomic(self.out / "results.json", json.dumps(results, indent=2).encode())
+        write_json(self.out / "results.json", results)
         seeds = len(self.cfg.eval.eval_seeds())
         noise = ", ".join(f"{EVALUATED[n]} ± {100 * rates[n]['overall']['se']:.1f}" for n in EVALUATED)
         caption = (
@@ -387,8 +236,7 @@ class Pipeline:
             f"evaluation seed(s), on held-out initial states; ± is one binomial standard error. Noise of the mean "
             f"over tasks (1 s.e., points): {noise}."
         )
-        history = [json.loads(line) for line in (self.out / "spo" / "log.jsonl").read_text().splitlines()]
-        plot_results(self.out / "results.png", rates, history)
+        plot_results(self.out / "results.png", rates, spo.history())
         timing = ", ".join(f"{k} {v:.0f} s" for k, v in self.seconds.items())
         write_atomic(self.out / "results.md", f"{table}\n\n{caption}\n\nStage wall times: {timing}.\n".encode())
         print(
@@ -403,17 +251,6 @@ def policy_config(path: Path) -> PreTrainedConfig:
     config = PreTrainedConfig.from_pretrained(path)
     config.pretrained_path = path
     return config
-
-
-def _lerobot_train(args: list[str], threads: int | None) -> None:
-    """Run ``lerobot-train`` (the one next to this interpreter) with our output streamed through."""
-    exe = Path(sys.executable).parent / "lerobot-train"
-    command = [str(exe) if exe.exists() else "lerobot-train", *args]
-    env = os.environ | ({"OMP_NUM_THREADS": str(threads)} if threads else {})
-    print("[pipeline] " + " ".join(command), flush=True)
-    returncode = subprocess.run(command, env=env).returncode
-    if returncode != 0:
-        raise RuntimeError(f"lerobot-train failed with exit code {returncode} (its output is above)")
 
 
 def _cell(row: dict[str, Any]) -> str:

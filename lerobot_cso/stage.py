@@ -1,0 +1,45 @@
+"""What the pipeline needs of a stage (demos, IL, evaluation, R-SFT, SPO), and the spec helper they share.
+
+A stage knows its own settings and output: :meth:`Stage.spec` is everything its result depends on (as plain
+JSON data), :meth:`Stage.complete` says whether its output is finished, :meth:`Stage.run` makes (or resumes)
+it and returns a JSON-able summary. :class:`~lerobot_cso.pipeline.Pipeline` only keeps records of specs and
+completion, so a rerun skips, resumes, or refuses stale results without knowing any stage's layout.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Protocol
+
+PIPELINE_FIELDS = ("tasks", "output_dir", "policy")  # set by the pipeline for every stage, not part of a spec
+
+
+class Stage(Protocol):
+    """One step of the pipeline."""
+
+    name: str
+    # True: a changed spec simply redoes the stage (evaluations); False: a changed spec with an existing
+    # output is refused, so stale results are never mixed with new ones.
+    redo_on_change: bool
+
+    def spec(self) -> dict[str, Any]:
+        """The settings and inputs the stage's result depends on."""
+
+    def output(self) -> Path:
+        """Where the stage writes."""
+
+    def complete(self) -> bool:
+        """Whether the output is finished."""
+
+    def run(self) -> Any:
+        """Make (or resume) the output; returns a JSON-able summary."""
+
+
+def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A config dataclass as plain JSON data, without the fields in ``exclude``."""
+    data = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in exclude}
+    return json.loads(
+        json.dumps(data, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
+    )
