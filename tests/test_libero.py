@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib.metadata
 import os
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,9 @@ from libero_fixtures import (
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.envs import libero_env, libero_setup, seeds
+from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.libero import Libero
+from lerobot_cso.rollout.pool import EnvPool
 from lerobot_cso.rollout.world import MetaWorld, world_for
 
 
@@ -113,6 +116,24 @@ def test_success_is_detected_once_the_drawer_is_open(env):
     assert terminated and not truncated and info["is_success"]
 
 
+class _Replay:
+    """A controller that plays fixed actions in chunks of 8 and keeps the agentview frame of each decision."""
+
+    def __init__(self, actions: np.ndarray) -> None:
+        self.actions, self.t, self.seen = actions, 0, []
+
+    def start(self, slot: int, job: Job) -> None:
+        self.t = 0
+
+    def act(self, obs: dict, active: np.ndarray) -> np.ndarray:
+        self.seen.append(obs["pixels"]["image"][0].copy())
+        self.t += 8
+        return self.actions[None, self.t - 8 : self.t]
+
+    def finish(self, slot: int) -> None:
+        return None
+
+
 def test_decision_only_rendering_gives_the_same_decision_frames(env):
     actions = np.random.default_rng(0).uniform(-1, 1, (16, 7)).astype(np.float32)
 
@@ -132,6 +153,19 @@ def test_decision_only_rendering_gives_the_same_decision_frames(env):
     assert np.array_equal(decisions[5]["pixels"]["image"], decisions[0]["pixels"]["image"])  # not rendered
     assert not np.array_equal(every[5]["pixels"]["image2"], every[0]["pixels"]["image2"])
 
+    # Through the pool: frames="decisions" hands the controller exactly those frames and records no images.
+    pool = EnvPool(
+        1, CAMERAS, IMAGE, 16, "sync", frames="decisions", check_task=libero_env.parse_task,
+        env_factory=partial(libero_env.CSOLiberoEnv, DRAWER_TASK, CAMERAS, IMAGE, 16),
+    )  # fmt: skip
+    replay = _Replay(actions)
+    [(_, trace)] = list(pool.run([Job(DRAWER_TASK, 1)], replay, start_every=8))
+    pool.close()
+    assert trace.images == {} and trace.length == 16
+    np.testing.assert_array_equal(trace.states[8], every[8]["agent_pos"])
+    for seen, t in zip(replay.seen, (0, 8), strict=True):
+        np.testing.assert_array_equal(seen, every[t]["pixels"]["image"])
+
 
 def test_rsft_buffer_holds_both_cameras_and_spo_runs_an_iteration_on_libero(tmp_path, monkeypatch):
     from lerobot_cso.cso import rsft, spo
@@ -140,13 +174,13 @@ def test_rsft_buffer_holds_both_cameras_and_spo_runs_an_iteration_on_libero(tmp_
     il = save_tiny_libero_policy(tmp_path / "il")
     common = dict(tasks=DRAWER_TASK, num_envs=2, vectorization="sync", max_steps=16)
     cfg = rsft.RSFTConfig(
-        **common, output_dir=tmp_path / "rsft", successes_per_task=2, n_strikes=2, states_per_round=1,
+        **common, output_dir=tmp_path / "rsft", successes_per_task=1, n_strikes=2, states_per_round=1,
         max_states_per_task=8, epochs=1, batch_size=4,
     )  # fmt: skip
     cfg.policy = load_policy(il)[0].config
     cfg.policy.pretrained_path = il
     report = rsft.run_rsft(cfg)[DRAWER_TASK]
-    assert report["kept"] == 2 and report["rollouts"] >= 2
+    assert report["kept"] == 1 and report["rollouts"] >= 1
     buffer = LeRobotDataset("local/cso_rsft_buffer", root=tmp_path / "rsft" / "buffer")
     assert buffer.meta.robot_type == "panda" and buffer.meta.fps == 20
     item = buffer[0]
@@ -163,7 +197,7 @@ def test_rsft_buffer_holds_both_cameras_and_spo_runs_an_iteration_on_libero(tmp_
     policy = tmp_path / "rsft" / "pretrained_model"
     spo_cfg = spo.SPOConfig(
         **common, output_dir=tmp_path / "spo", iterations=1, groups_per_iteration=1, group_size=2, epochs=1,
-        minibatch_trajectories=2, max_draw_factor=2, lr=1e-3,
+        minibatch_trajectories=2, max_draw_factor=1, lr=1e-3,
     )  # fmt: skip
     spo_cfg.policy = load_policy(policy)[0].config
     spo_cfg.policy.pretrained_path = policy
