@@ -42,10 +42,11 @@ from lerobot_cso import cli
 pytestmark = pytest.mark.slow
 
 TIMEOUT_S = 300
+# Rest moves of 1 s: time to reach the rest pose also from where an e-stop let the arm sink.
 # The tiny policy keeps the arm within 0.05 of the rest pose (joint_2 at 0.3 rad): "reached" for a target
 # there, never for a target at 1.5 rad.
 NEAR, FAR = {"joint_2.pos": REST[1]}, {"joint_2.pos": 1.5}
-EPISODE = ["--operator.fps=30", "--operator.episode_time_s=0.5", "--operator.rest_time_s=0.3"]
+EPISODE = ["--operator.fps=30", "--operator.episode_time_s=0.5", "--operator.rest_time_s=1.0"]
 EPISODE += [f"--operator.rest_pose=[{','.join(map(str, REST))}]", f"--tasks={TASK}"]
 
 
@@ -121,19 +122,23 @@ def emergency_stop(arm: EmulatorProcess) -> None:
 def rsft(arm, home, il_policy, tmp_path_factory) -> dict:
     """R-SFT with 2 strikes per state until 4 successes: states 0 and 2 succeed, state 1 is struck out.
 
-    Run 1 is killed after 3 episodes; run 2 gets an e-stop after its first episode; run 3 recovers and ends.
+    Run 1 is killed while state 1, attempt 2 waits to start (3 episodes on disk); run 2 gets an e-stop while
+    state 2, attempt 1 waits; run 3 opens that gate, recovers the arm and ends.
     """
-    out = home / "rsft"
-    script = write_script(tmp_path_factory.mktemp("ops") / "rsft.json", {"default": NEAR, "1": FAR}, {}, 0.1)
+    out, ops = home / "rsft", tmp_path_factory.mktemp("ops")
+    gates = {"1/2/0": str(ops / "gate_kill"), "2/1/0": str(ops / "gate_fault")}
+    script = write_script(ops / "rsft.json", {"default": NEAR, "1": FAR}, {}, 0.1, gates)
     args = ["rsft", f"--policy.path={il_policy}", *robot_args(arm), *EPISODE, f"--output_dir={out}"]
     args += ["--operator.type=scripted", f"--operator.script={script}", "--n_strikes=2", "--successes_per_task=4"]
     args += ["--states_per_round=1", "--epochs=1", "--batch_size=8"]
     killed = kill_after(args, home, out, 3)
+    Path(gates["1/2/0"]).touch()
     process = lerobot_cso(args, home)
     wait_for_episodes(out, len(killed) + 1, process)
     emergency_stop(arm)
     faulted_out, faulted_err = process.communicate(timeout=TIMEOUT_S)
     faulted = {"rc": process.returncode, "out": faulted_out, "err": faulted_err, "on_disk": journal_episodes(out)}
+    Path(gates["2/1/0"]).touch()
     rc, final_out, final_err = finish([*args, "--robot.recovery=reset"], home)
     assert rc == 0, final_err[-3000:]
     return {"out": out, "killed": killed, "faulted": faulted, "final_out": final_out}
@@ -143,13 +148,12 @@ def test_rsft_resumes_after_kill_and_fault_with_no_episode_lost_or_duplicated(rs
     every = {f"{s:07d}_{a:03d}" for s in range(3) for a in (1, 2)}
     assert journal_episodes(rsft["out"]) == every
     killed, faulted = rsft["killed"], rsft["faulted"]
-    assert 3 <= len(killed) < len(faulted["on_disk"]) < len(every)
+    assert killed == {"0000000_001", "0000000_002", "0000001_001"}
+    assert faulted["on_disk"] == killed | {"0000001_002"}
     # Each run ran on the arm exactly the episodes that were not on disk yet, in order.
     second, third = live_episodes(faulted["out"]), live_episodes(rsft["final_out"])
     assert sorted(killed) + second + third == sorted(every)
-    state, attempt = int(second[0][:7]), int(second[0][8:])
-    if attempt > 1:  # killed mid-state: the rerun says where it goes on
-        assert f"next: state {state}, attempt {attempt}" in faulted["out"]
+    assert second == ["0000001_002"] and "resuming: 1 episodes on disk; next: state 1, attempt 2" in faulted["out"]
     report = json.loads((rsft["out"] / "collection.json").read_text())[TASK]
     assert report == {"rollouts": 6, "successes": 4, "kept": 4, "states_tried": 3, "states_struck_out": 1}
 
@@ -163,7 +167,7 @@ def test_an_emergency_stop_discards_the_episode_in_flight_and_ends_the_command_w
     assert len(records) == 1  # the e-stopped try: recorded as discarded, then rerun and kept
     discarded = json.loads(records[0].read_text())["discarded"]
     assert len(discarded) == 1 and "emergency stop" in discarded[0]
-    assert records[0].stem in live_episodes(rsft["final_out"])
+    assert records[0].stem == "0000002_001" and records[0].stem in live_episodes(rsft["final_out"])
 
 
 def test_rsft_buffer_holds_exactly_the_successes_with_their_skills(rsft):
@@ -182,15 +186,17 @@ def test_rsft_buffer_holds_exactly_the_successes_with_their_skills(rsft):
 @pytest.fixture(scope="module")
 def spo(arm, home, rsft, tmp_path_factory) -> dict:
     """One SPO iteration of 2 groups of K=2 (attempt 1 of each state succeeds by key, attempt 2 fails), killed
-    after 2 episodes and resumed."""
-    out = home / "spo"
+    while state 1 waits to start (2 episodes on disk) and resumed."""
+    out, ops = home / "spo", tmp_path_factory.mktemp("ops")
     keys = {f"{state}/1/0": [2, "success"] for state in (0, 1)}
-    script = write_script(tmp_path_factory.mktemp("ops") / "spo.json", {"default": FAR}, keys, 0.1)
+    gate = ops / "gate_kill"
+    script = write_script(ops / "spo.json", {"default": FAR}, keys, 0.1, {"1/1/0": str(gate)})
     policy = rsft["out"] / "pretrained_model"
     args = ["spo", f"--policy.path={policy}", *robot_args(arm), *EPISODE, f"--output_dir={out}"]
     args += ["--operator.type=scripted", f"--operator.script={script}", "--iterations=1"]
     args += ["--groups_per_iteration=2", "--group_size=2", "--epochs=2", "--lr=1e-3", "--max_draw_factor=1"]
     killed = kill_after(args, home, out, 2)
+    gate.touch()
     rc, final_out, err = finish(args, home)
     assert rc == 0, err[-3000:]
     return {"out": out, "killed": killed, "final_out": final_out, "before": policy}
@@ -199,7 +205,8 @@ def spo(arm, home, rsft, tmp_path_factory) -> dict:
 def test_spo_resumes_mid_iteration_and_its_update_changes_only_the_prior(spo):
     every = {f"{s:07d}_{a:03d}" for s in range(2) for a in (1, 2)}
     assert journal_episodes(spo["out"]) == every
-    assert sorted(spo["killed"]) + live_episodes(spo["final_out"]) == sorted(every)
+    assert spo["killed"] == {"0000000_001", "0000000_002"}
+    assert live_episodes(spo["final_out"]) == ["0000001_001", "0000001_002"]
     log = [json.loads(line) for line in (spo["out"] / "log.jsonl").read_text().splitlines()]
     assert len(log) == 1 and log[0]["success_rate"] == 0.5 and log[0]["rejection_rate"] == 0 and log[0]["updates"] > 0
     before = load_file(spo["before"] / "model.safetensors")

@@ -13,7 +13,8 @@ attempt is repeated). No verdict by the time limit is a failure.
   and dry runs. Arranging takes no time; key presses come from the script, keyed by
   ``"<state>/<attempt>/<retry>"`` (attempt from 1, retry = how many times this attempt was discarded before)
   as ``[tick, verdict]``; without a key, the last tick is judged by a rule on the measured pose: success when
-  every value named in the state's target is within ``tolerance`` of it.
+  every value named in the state's target is within ``tolerance`` of it. ``gates`` hold an episode in its
+  arrange phase until a file exists (a test stops or faults the command there).
 """
 
 from __future__ import annotations
@@ -132,7 +133,8 @@ class ScriptedOperator:
     """Deterministic labels for tests: scripted key presses, else a pose rule judged at the last tick.
 
     Script: ``{"tolerance": 0.05, "targets": {"<state>": {"joint_1.pos": 0.1, ...}, "default": {...}},
-    "keys": {"<state>/<attempt>/<retry>": [tick, "success" | "failure" | "discard"]}}``.
+    "keys": {"<state>/<attempt>/<retry>": [tick, "success" | "failure" | "discard"]},
+    "gates": {"<state>/<attempt>/<retry>": "<file that must exist before the episode starts>"}}``.
     """
 
     def __init__(self, script: Path) -> None:
@@ -140,11 +142,15 @@ class ScriptedOperator:
         self.tolerance = float(data.get("tolerance", 0.05))
         self.targets: dict[str, dict[str, float]] = data.get("targets", {})
         self.keys: dict[str, tuple[int, str]] = {k: (int(t), v) for k, (t, v) in data.get("keys", {}).items()}
+        self.gates: dict[str, str] = data.get("gates", {})
         bad = [v for _, v in self.keys.values() if v not in VERDICTS]
         if bad:
             raise UsageError(f"{script}: key verdicts must be one of {', '.join(VERDICTS)}, got {bad}")
 
     def ready(self, episode: EpisodeInfo) -> bool:
+        gate = self.gates.get(f"{episode.state}/{episode.attempt}/{episode.retry}")
+        if gate is not None and not Path(gate).exists():
+            return False
         print(f">>> {episode.prompt()} (scripted)", flush=True)
         return True
 
