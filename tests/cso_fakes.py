@@ -40,6 +40,13 @@ def save_tiny_metaworld_policy(path: Path, seed: int = 0) -> Path:
     return path
 
 
+def mixed(task: str, seed: int, sample: int) -> bool:
+    """Odd seeds: samples 0 and 1 of 4 succeed; seeds = 0 mod 4 all fail; seeds = 2 mod 4 all succeed."""
+    if seed % 2:
+        return sample < 2
+    return seed % 4 == 2
+
+
 class ScriptedEngine:
     """Stands in for RolloutEngine: success of (task, seed, sample) comes from ``outcome``; the episode
     content (states, tokens, contexts) is random but seeded by (task, seed, sample)."""

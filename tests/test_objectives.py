@@ -21,6 +21,7 @@ from lerobot_cso.cso.objectives import (
     group_advantages,
     leave_one_out_advantages,
     reject_uniform_groups,
+    surrogate_units,
 )
 
 OLD_LOGP = -1.3  # any value: only new - old matters
@@ -205,6 +206,33 @@ def test_padding_affects_neither_loss_nor_gradient(granularity):
         assert loss == pytest.approx(loss0, rel=1e-12)
         torch.testing.assert_close(grad, grad0, rtol=1e-12, atol=0)
         assert astuple(stats) == pytest.approx(astuple(stats0), rel=1e-12)
+
+
+def test_surrogate_units_by_hand():
+    mask = torch.tensor([[True, True, False], [True, False, False], [False, False, False]])
+    counts = {g: int(surrogate_units(mask, 8, g)) for g in Granularity}
+    assert counts == {"token": 24, "ript": 24, "skill": 3, "trajectory": 2}
+
+
+@pytest.mark.parametrize("granularity", list(Granularity))
+def test_row_shards_normalised_by_the_whole_minibatch_add_up_to_it(granularity):
+    """What a data-parallel SPO update relies on: rows split over processes, each loss divided by the whole
+    minibatch's unit count, sum to the minibatch's loss and gradient."""
+    torch.manual_seed(1)
+    mask = torch.arange(4)[None, :] < torch.tensor([4, 2, 1, 3, 2])[:, None]
+    old = -torch.rand(5, 4, 8, dtype=torch.float64) * 3
+    new = (old + 0.2 * torch.randn_like(old)).requires_grad_(True)
+    adv = torch.tensor([0.5, -0.25, 1.0, -1.0, 0.1], dtype=torch.float64)
+    whole, _ = clipped_surrogate_loss(new, old, mask, adv, granularity)
+    (grad_whole,) = torch.autograd.grad(whole, new)
+    units = surrogate_units(mask, 8, granularity)
+    parts = [
+        clipped_surrogate_loss(new[r], old[r], mask[r], adv[r], granularity, n_units=units)[0]
+        for r in (slice(0, 5, 2), slice(1, 5, 2))
+    ]
+    (grad_parts,) = torch.autograd.grad(sum(parts), new)
+    assert float(sum(parts)) == pytest.approx(float(whole), rel=1e-12)
+    torch.testing.assert_close(grad_parts, grad_whole, rtol=1e-12, atol=1e-15)
 
 
 def test_no_valid_decision_gives_zero_loss():

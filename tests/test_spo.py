@@ -8,19 +8,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from cso_fakes import TASKS, ScriptedEngine, save_tiny_metaworld_policy
+from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import spo
 
 S = 1_500_000  # first SPO initial-state seed
-
-
-def mixed(task: str, seed: int, sample: int) -> bool:
-    """Odd seeds: samples 0 and 1 of 4 succeed; seeds = 0 mod 4 all fail; seeds = 2 mod 4 all succeed."""
-    if seed % 2:
-        return sample < 2
-    return seed % 4 == 2
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +89,8 @@ def test_spo_updates_the_prior_only(rsft_policy, tmp_path, objective):
     assert any(not torch.equal(p, q) for p, q in zip(before.prior.parameters(), after.prior.parameters(), strict=True))
     assert after.config.freeze_encoders
     assert [h["iteration"] for h in history] == [1, 2]
+    drawn = [s for call in engines[0].calls for s in call]
+    assert len(drawn) == len(set(drawn))  # every iteration draws fresh initial states
     assert all(h["rejection_rate"] == 0.5 and h["success_rate"] == 0.5 for h in history)
     assert all(0.0 <= h["clip_fraction"] <= 1.0 and h["grad_norm"] > 0 for h in history)
     logged = [json.loads(line) for line in (cfg.output_dir / "log.jsonl").read_text().splitlines()]

@@ -105,6 +105,16 @@ class SurrogateStats:
     ratio_mean: float
 
 
+def surrogate_units(decision_mask: Tensor, n_tokens: int, granularity: Granularity | str) -> Tensor:
+    """How many units (tokens, skills or trajectories) :func:`clipped_surrogate_loss` averages over."""
+    granularity = Granularity(granularity)
+    if granularity in (Granularity.TOKEN, Granularity.RIPT):
+        return decision_mask.sum() * n_tokens
+    if granularity is Granularity.SKILL:
+        return decision_mask.sum()
+    return (decision_mask.sum(dim=1) > 0).sum()
+
+
 def clipped_surrogate_loss(
     new_logprobs: Tensor,
     old_logprobs: Tensor,
@@ -112,8 +122,13 @@ def clipped_surrogate_loss(
     advantages: Tensor,
     granularity: Granularity | str = Granularity.SKILL,
     clip: tuple[float, float] | None = None,
+    n_units: Tensor | None = None,
 ) -> tuple[Tensor, SurrogateStats]:
     """PPO-style clipped surrogate at a chosen granularity; returns (loss = -objective, stats).
+
+    The loss is the sum of the units' objectives over ``n_units`` (default: this batch's valid units, see
+    :func:`surrogate_units`); a process of a data-parallel update passes its whole minibatch's count, so the
+    processes' losses add up to the minibatch's. The stats always refer to this batch.
 
     Per valid unit u with ratio r_u and its trajectory's advantage A: objective_u = min(r_u A, clip(r_u) A),
     with clip bounds `clip` or `default_clip(granularity)`. `old_logprobs` is treated as a constant.
@@ -163,18 +178,18 @@ def clipped_surrogate_loss(
     unclipped = ratio * unit_adv
     clipped = ratio.clamp(lower, upper) * unit_adv
     objective = torch.where(unit_mask, torch.minimum(unclipped, clipped), 0.0)
-    n_units = unit_mask.sum().clamp(min=1)
-    loss = -objective.sum() / n_units
+    n_units_here = unit_mask.sum().clamp(min=1)
+    loss = -objective.sum() / (n_units_here if n_units is None else n_units.clamp(min=1))
 
     with torch.no_grad():
         was_clipped = (clipped < unclipped) & unit_mask
         below = was_clipped & (ratio < lower)
         k3 = torch.where(token_mask, torch.expm1(token_log_ratio) - token_log_ratio, 0.0)
         stats = SurrogateStats(
-            clip_fraction=(was_clipped.sum() / n_units).item(),
-            clip_low_fraction=(below.sum() / n_units).item(),
-            clip_high_fraction=((was_clipped & ~below).sum() / n_units).item(),
+            clip_fraction=(was_clipped.sum() / n_units_here).item(),
+            clip_low_fraction=(below.sum() / n_units_here).item(),
+            clip_high_fraction=((was_clipped & ~below).sum() / n_units_here).item(),
             approx_kl=(k3.sum() / token_mask.sum().clamp(min=1)).item(),
-            ratio_mean=(torch.where(unit_mask, ratio, 0.0).sum() / n_units).item(),
+            ratio_mean=(torch.where(unit_mask, ratio, 0.0).sum() / n_units_here).item(),
         )
     return loss, stats

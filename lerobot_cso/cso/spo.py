@@ -34,6 +34,7 @@ import torch
 from lerobot.configs import parser
 from lerobot.configs.default import WandBConfig
 
+from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import (
     Granularity,
@@ -41,6 +42,7 @@ from lerobot_cso.cso.objectives import (
     clipped_surrogate_loss,
     default_clip,
     reject_uniform_groups,
+    surrogate_units,
 )
 from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
 from lerobot_cso.envs import seeds
@@ -201,7 +203,12 @@ def collect_groups(
 def update(
     cfg: SPOConfig, policy: CSOPolicy, optimizer: torch.optim.Optimizer, batch: Batch, generator: torch.Generator
 ) -> dict[str, float]:
-    """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21)."""
+    """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21).
+
+    Data-parallel over processes (:mod:`lerobot_cso.distributed`): every process holds the whole batch and
+    the same minibatches; each back-propagates its rows of a minibatch, normalised by the whole minibatch's
+    unit count, and the summed gradients give every replica the same step.
+    """
     policy.eval()  # dropout off: π_old and π are evaluated identically
     with torch.no_grad():
         old = padded_logprobs(
@@ -214,23 +221,30 @@ def update(
         if rows and cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
             break
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
-            new = padded_logprobs(
-                policy,
-                batch.contexts[idx],
-                batch.tokens[idx],
-                batch.mask[idx],
-                cfg.sampling.temperature,
-                cfg.ratio_top_k,
-            )
-            loss, stats = clipped_surrogate_loss(
-                new, old[idx], batch.mask[idx], batch.advantages[idx], cfg.objective, clip
-            )
+            units = surrogate_units(batch.mask[idx], batch.tokens.shape[-1], cfg.objective)
+            mine = idx[distributed.shard_rows(len(idx))]
             optimizer.zero_grad()
-            loss.backward()
+            local, weight = {}, 0.0
+            if len(mine):
+                new = padded_logprobs(
+                    policy,
+                    batch.contexts[mine],
+                    batch.tokens[mine],
+                    batch.mask[mine],
+                    cfg.sampling.temperature,
+                    cfg.ratio_top_k,
+                )
+                loss, stats = clipped_surrogate_loss(
+                    new, old[mine], batch.mask[mine], batch.advantages[mine], cfg.objective, clip, n_units=units
+                )
+                loss.backward()
+                weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], cfg.objective))
+                local = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0)}
+            distributed.all_reduce_gradients(list(policy.prior.parameters()))
             grad_norm = torch.nn.utils.clip_grad_norm_(policy.prior.parameters(), cfg.grad_clip_norm)
             optimizer.step()
-            rows.append({"loss": loss.item(), "grad_norm": float(grad_norm), **asdict(stats)})
-            if cfg.target_kl is not None and stats.approx_kl > cfg.target_kl:
+            rows.append({**distributed.weighted_mean(local, weight), "grad_norm": float(grad_norm)})
+            if cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
                 break
     return {key: float(np.mean([r[key] for r in rows])) for key in UPDATE_STATS} | {"updates": len(rows)}
 
@@ -265,17 +279,23 @@ def run_spo(
     """
     tasks = cfg.validate()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    main = distributed.is_main()
+    if main:
+        ResumableState(cfg.output_dir / "state")  # undoes an interrupted save before any process reads it
+    distributed.wait_for_everyone()
     state = ResumableState(cfg.output_dir / "state")
     saved = state.progress()
     resume = saved is not None
     progress = saved or {"iteration": 0, "cursor": 0, "history": []}
     if progress["iteration"] >= cfg.iterations:
         print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
-        if not (cfg.output_dir / "pretrained_model" / "config.json").is_file():  # killed before the final copy
+        final_missing = not (cfg.output_dir / "pretrained_model" / "config.json").is_file()
+        if main and final_missing:  # killed before the final copy
             tmp = cfg.output_dir / "pretrained_model.tmp"
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.copytree(state.directory / "pretrained_model", tmp)
             replace_dir(tmp, cfg.output_dir / "pretrained_model")
+        distributed.wait_for_everyone()
         return progress["history"]
     source = state.directory / "pretrained_model" if resume else cfg.policy.pretrained_path
     policy, pre, post = load_policy(source, cfg.policy if not resume else None)
@@ -285,7 +305,7 @@ def run_spo(
         optimizer.load_state_dict(torch.load(state.directory / "optimizer.pt"))
     generator = torch.Generator().manual_seed(cfg.seed)
     run = None
-    if cfg.wandb.enable:
+    if cfg.wandb.enable and main:
         import wandb
 
         run = wandb.init(
@@ -296,13 +316,14 @@ def run_spo(
             resume="allow",
             id=cfg.wandb.run_id,
         )
-    history = progress["history"]
-    print(" | ".join(LOG_COLUMNS))
-    with make_engine(policy, pre, post, cfg) as engine:
+    history, cursor = progress["history"], progress["cursor"]
+    if main:
+        print(" | ".join(LOG_COLUMNS))
+    with distributed.ShardedRollouts(make_engine(policy, pre, post, cfg)) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
             round_seed = seeds.round_seed(cfg.seed, iteration * 10_007)
-            groups, stats, cursor = collect_groups(cfg, tasks, engine, progress["cursor"], round_seed)
+            groups, stats, cursor = collect_groups(cfg, tasks, engine, cursor, round_seed)
             generator.manual_seed(round_seed)
             if groups:
                 stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
@@ -310,20 +331,24 @@ def run_spo(
                 stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
             history.append(row)
-            print(format_row(row), flush=True)
-            if run is not None:
-                run.log(row, step=iteration + 1)
+            if main:
+                print(format_row(row), flush=True)
+                if run is not None:
+                    run.log(row, step=iteration + 1)
 
-            def write(directory: Path) -> None:
-                save_checkpoint(directory / "pretrained_model", policy, pre, post)
-                torch.save(optimizer.state_dict(), directory / "optimizer.pt")
+                def write(directory: Path) -> None:
+                    save_checkpoint(directory / "pretrained_model", policy, pre, post)
+                    torch.save(optimizer.state_dict(), directory / "optimizer.pt")
 
-            state.save({"iteration": iteration + 1, "cursor": cursor, "history": history}, write)
-            write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
-            plot_history(history, cfg.output_dir / "spo.png")
-    save_checkpoint(cfg.output_dir / "pretrained_model", policy, pre, post)
+                state.save({"iteration": iteration + 1, "cursor": cursor, "history": history}, write)
+                write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
+                plot_history(history, cfg.output_dir / "spo.png")
+            distributed.wait_for_everyone()
+    if main:
+        save_checkpoint(cfg.output_dir / "pretrained_model", policy, pre, post)
     if run is not None:
         run.finish()
+    distributed.wait_for_everyone()
     return history
 
 
