@@ -175,9 +175,7 @@ def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[
     return jobs
 
 
-def _generate(
-    cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, known: dict[tuple[str, int], bool]
-) -> None:
+def _generate(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, known: dict[tuple[str, int], bool]) -> None:
     """Run episodes until every task has its count (staged + in the dataset); each one is staged at once."""
     from lerobot_cso.rollout.expert import ExpertController
     from lerobot_cso.rollout.pool import EnvPool, Job
@@ -193,9 +191,7 @@ def _generate(
                 known[(trace.job.task, trace.job.init_seed)] = trace.success
 
 
-def _assemble(
-    cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_dataset: set[tuple[str, int]]
-) -> int:
+def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_dataset: set[tuple[str, int]]) -> int:
     """Write the staged episodes (task order, then seed order) into the dataset; returns how many."""
     staged = _staged(staging)
     keys = [

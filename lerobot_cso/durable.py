@@ -97,7 +97,8 @@ class EpisodeJournal:
             )
         (root / "episodes").mkdir(parents=True, exist_ok=True)
         (root / "records").mkdir(parents=True, exist_ok=True)
-        write_json(root / "spec.json", spec)
+        if stored is None:
+            write_json(root / "spec.json", spec)
 
     def episode_path(self, group: str, name: str) -> Path:
         return self.root / "episodes" / group / f"{name}.npz"
@@ -137,11 +138,26 @@ class ResumableState:
         """The progress saved last, or None before the first save."""
         return read_json(self.directory / PROGRESS_FILE)
 
-    def save(self, progress: dict[str, Any], write: Callable[[Path], None]) -> None:
-        """``write(tmp)`` fills a fresh directory, then it replaces the state together with ``progress``."""
+    def save(
+        self,
+        progress: dict[str, Any],
+        write: Callable[[Path], None],
+        main: bool = True,
+        barrier: Callable[[], None] = lambda: None,
+    ) -> None:
+        """``write(tmp)`` fills a fresh directory, then it replaces the state together with ``progress``.
+
+        When several processes write one state (e.g. accelerate's ``save_state``), all call this: the ``main``
+        one prepares and commits the directory, and ``barrier`` keeps the others' ``write`` in between.
+        """
         tmp = self.directory.with_name(self.directory.name + ".tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
+        if main:
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir(parents=True)
+        barrier()
         write(tmp)
-        write_json(tmp / PROGRESS_FILE, progress)
-        replace_dir(tmp, self.directory)
+        barrier()
+        if main:
+            write_json(tmp / PROGRESS_FILE, progress)
+            replace_dir(tmp, self.directory)
+        barrier()

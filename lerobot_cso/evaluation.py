@@ -1,7 +1,8 @@
 """``lerobot-cso eval``: per-task success rates of a policy, mean ± std over seeds.
 
-Evaluation seed ``s`` fixes both the sampling RNG and a block of initial states of its own, which the world
-chooses (:meth:`~lerobot_cso.rollout.world.World.eval_states`). On MetaWorld episode ``i`` of a task starts
+Evaluation seed ``s`` fixes the sampling RNG and the initial states, which the world chooses
+(:meth:`~lerobot_cso.rollout.world.World.eval_states`; on LIBERO every seed reuses the benchmark's 50 fixed
+init states per task, as the paper's protocol does). On MetaWorld episode ``i`` of a task starts
 from ``seeds.EVAL.start + s * seeds.EVAL_BLOCK + i``: the states are fixed per seed (the same for every
 checkpoint), disjoint between seeds, and disjoint from every demo and training-rollout state
 (:mod:`lerobot_cso.envs.seeds`). The spread over seeds covers initial states and
@@ -17,7 +18,7 @@ import datetime as dt
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from lerobot.configs import parser
@@ -30,6 +31,8 @@ from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 @dataclass
 class EvalConfig(RolloutStageConfig):
     """Settings of ``lerobot-cso eval`` (``--policy.path=... --tasks=MT10 --seeds=0,1,2``)."""
+
+    records_frames: ClassVar[bool] = False  # only outcomes are kept
 
     tasks: str = "ML45-train"
     episodes_per_task: int = 50
@@ -142,6 +145,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
+    from lerobot_cso import distributed
     from lerobot_cso.rollout.engine import RolloutEngine
 
     tasks = cfg.validate()
@@ -155,7 +159,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     world = cfg.world()
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
     episodes, throughput = [], []
-    with RolloutEngine.for_stage(policy, pre, post, cfg) as engine:
+    with distributed.ShardedRollouts(RolloutEngine.for_stage(policy, pre, post, cfg)) as engine:
         for s in eval_seed_list:
             states = [(task, init) for task in tasks for init in world.eval_states(task, s, cfg.episodes_per_task)]
             result = engine.rollout(states, k=1, sampling=cfg.sampling, seed=s, progress=f"eval seed {s}")
@@ -180,7 +184,9 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
         "throughput": throughput,
         "episodes": episodes,
     }
-    write_outputs(cfg.output_dir, rows, record)
+    if distributed.is_main():
+        write_outputs(cfg.output_dir, rows, record)
+    distributed.wait_for_everyone()
     return rows
 
 

@@ -39,11 +39,11 @@ from lerobot_cso.cso.rsft import RSFTConfig, RSFTStage
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig, DemosStage
 from lerobot_cso.durable import read_json, write_atomic, write_json
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.evaluation import EvalConfig, EvalStage
 from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
+from lerobot_cso.rollout.world import world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, Stage
 
 SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
@@ -112,7 +112,7 @@ class Pipeline:
         self.cfg = cfg
         self.out = cfg.output_dir
         try:
-            self.tasks = resolve_tasks(cfg.tasks)
+            self.tasks = world_for(cfg.tasks).resolve_tasks(cfg.tasks)
         except ValueError as e:
             raise UsageError(str(e)) from None
         if cfg.torch_threads is not None and cfg.torch_threads < 1:
@@ -139,7 +139,8 @@ class Pipeline:
         """Check every section before anything runs, with a stand-in for the policies still to be trained."""
         self.demos_config().validate()
         self.cfg.il.validate()
-        stand_in = CSOConfig(tasks=[task_description(t) for t in self.tasks], device="cpu")
+        describe = world_for(self.cfg.tasks).task_description
+        stand_in = CSOConfig(tasks=[describe(t) for t in self.tasks], device="cpu")
         stand_in.pretrained_path = self.out / "il"
         self.eval_config("il", stand_in).validate()
         self.rsft_config(stand_in).validate()

@@ -34,6 +34,9 @@ class RolloutStageConfig(PolicyPathConfig):
 
     # What --policy.path must point at, for the error message when it is missing.
     policy_role: ClassVar[str] = "a directory written by save_pretrained"
+    # Whether the stage keeps every frame of an episode (R-SFT's buffer does); a world may then render only
+    # the frames a decision needs.
+    records_frames: ClassVar[bool] = True
 
     # One task, a comma list, or a set of the world (MetaWorld: MT10, MT50, ML45-train, ML45-test).
     tasks: str = "MT10"

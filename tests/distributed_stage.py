@@ -1,8 +1,11 @@
-"""SPO with the scripted engine, on as many processes as it is launched with (used by tests/test_distributed.py).
+"""SPO or R-SFT with the scripted engine, on as many processes as it is launched with (tests/test_distributed.py).
 
-    [accelerate launch --multi_gpu --num_processes N] python tests/distributed_spo.py POLICY OUT ITERATIONS DIGESTS
+    [accelerate launch --multi_gpu --num_processes N] tests/distributed_stage.py STAGE POLICY OUT LENGTH DIGESTS
 
-Each process writes ``DIGESTS/rank<r>.pt``, the prior it ends with (the library itself writes on rank 0 only).
+LENGTH is SPO's iterations or R-SFT's epochs.
+
+Each process writes ``DIGESTS/rank<r>.pt``, the weights its replica ends with (the library itself writes on
+rank 0 only): the prior after SPO, the whole policy after R-SFT.
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ from cso_fakes import TASKS, ScriptedEngine, mixed
 
 from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy
-from lerobot_cso.cso import spo
+from lerobot_cso.cso import rsft, spo
+from lerobot_cso.policy import CSOPolicy
 
 
-def main(policy_path: Path, out: Path, iterations: int, digests: Path) -> None:
-    torch.set_num_threads(1)
+def run_spo(policy_path: Path, out: Path, iterations: int) -> dict[str, torch.Tensor]:
     cfg = spo.SPOConfig(
         tasks=",".join(TASKS),
         output_dir=out,
@@ -40,10 +43,42 @@ def main(policy_path: Path, out: Path, iterations: int, digests: Path) -> None:
         return ScriptedEngine(mixed, policy=policy)
 
     spo.run_spo(cfg, make_engine=make_engine)
+    return trained[0].prior.state_dict() if trained else {}
+
+
+def run_rsft(policy_path: Path, out: Path, epochs: int) -> dict[str, torch.Tensor]:
+    cfg = rsft.RSFTConfig(
+        tasks=",".join(TASKS),
+        output_dir=out,
+        successes_per_task=3,
+        n_strikes=4,
+        states_per_round=1,
+        epochs=epochs,
+        batch_size=4,
+        lr=1e-3,
+        min_lr=1e-4,
+    )
+    cfg.policy = load_policy(policy_path)[0].config
+    cfg.policy.pretrained_path = policy_path
+    frozen: list[CSOPolicy] = []
+    freeze = CSOPolicy.set_encoders_frozen
+
+    def record_frozen(self: CSOPolicy, value: bool) -> None:  # the replica R-SFT ends with, on every process
+        freeze(self, value)
+        if value:
+            frozen.append(self)
+
+    CSOPolicy.set_encoders_frozen = record_frozen
+    rsft.run_rsft(cfg, make_engine=lambda policy, pre, post, settings: ScriptedEngine(mixed))
+    return frozen[-1].state_dict()
+
+
+def main(stage: str, policy_path: Path, out: Path, length: int, digests: Path) -> None:
+    torch.set_num_threads(1)
+    weights = (run_spo if stage == "spo" else run_rsft)(policy_path, out, length)
     digests.mkdir(parents=True, exist_ok=True)
-    prior = trained[0].prior.state_dict() if trained else {}
-    torch.save(prior, digests / f"rank{distributed.state().process_index}.pt")
+    torch.save(weights, digests / f"rank{distributed.state().process_index}.pt")
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4]))
+    main(sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]), Path(sys.argv[5]))

@@ -1,4 +1,4 @@
-"""SPO on two processes (accelerate launch, gloo on CPU) against one process, on the same scripted groups."""
+"""SPO and R-SFT on two processes (accelerate launch, gloo on CPU) against one process, on scripted rollouts."""
 
 from __future__ import annotations
 
@@ -20,10 +20,10 @@ ACCELERATE = Path(sys.executable).parent / "accelerate"
 ENV = {**os.environ, "PYTHONHASHSEED": "0", "OMP_NUM_THREADS": "1", "PYTHONPATH": str(TESTS)}
 
 
-def spo_run(policy: Path, out: Path, iterations: int, processes: int) -> list[dict[str, torch.Tensor]]:
-    """Run tests/distributed_spo.py on ``processes`` processes; returns each process's final prior."""
-    digests = out.with_name(out.name + f"_digests_{iterations}_{processes}")
-    script = [str(TESTS / "distributed_spo.py"), str(policy), str(out), str(iterations), str(digests)]
+def stage_run(stage: str, policy: Path, out: Path, length: int, processes: int) -> list[dict[str, torch.Tensor]]:
+    """Run tests/distributed_stage.py on ``processes`` processes; returns each process's final weights."""
+    digests = out.with_name(out.name + f"_digests_{length}_{processes}")
+    script = [str(TESTS / "distributed_stage.py"), stage, str(policy), str(out), str(length), str(digests)]
     launch = [str(ACCELERATE), "launch", "--multi_gpu", f"--num_processes={processes}", "--num_machines=1"]
     launch += ["--mixed_precision=no", "--dynamo_backend=no", "--main_process_port=0"]
     command = [*launch, *script] if processes > 1 else [sys.executable, *script]
@@ -52,8 +52,8 @@ def assert_same_step(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], sta
 
 
 def test_two_processes_take_the_one_process_step_and_write_once(frozen_policy, tmp_path):
-    [single] = spo_run(frozen_policy, tmp_path / "one", iterations=1, processes=1)
-    rank0, rank1 = spo_run(frozen_policy, tmp_path / "two", iterations=1, processes=2)
+    [single] = stage_run("spo", frozen_policy, tmp_path / "one", length=1, processes=1)
+    rank0, rank1 = stage_run("spo", frozen_policy, tmp_path / "two", length=1, processes=2)
     assert all(torch.equal(rank0[k], rank1[k]) for k in rank0)  # the replicas are bit-identical
     before = load_policy(frozen_policy)[0].prior.state_dict()
     assert any(not torch.equal(before[k], single[k]) for k in single)  # the update did move the prior
@@ -70,9 +70,9 @@ def test_two_processes_take_the_one_process_step_and_write_once(frozen_policy, t
 
 
 def test_a_two_process_run_resumes_on_one_process(frozen_policy, tmp_path):
-    [after_one] = spo_run(frozen_policy, tmp_path / "resumed", iterations=1, processes=2)[:1]
-    [resumed] = spo_run(frozen_policy, tmp_path / "resumed", iterations=2, processes=1)
-    spo_run(frozen_policy, tmp_path / "straight", iterations=2, processes=1)
+    [after_one] = stage_run("spo", frozen_policy, tmp_path / "resumed", length=1, processes=2)[:1]
+    [resumed] = stage_run("spo", frozen_policy, tmp_path / "resumed", length=2, processes=1)
+    stage_run("spo", frozen_policy, tmp_path / "straight", length=2, processes=1)
     assert any(not torch.equal(after_one[k], resumed[k]) for k in resumed)  # iteration 2 trained on top
     logs, progress = {}, {}
     for name in ("resumed", "straight"):
@@ -82,3 +82,17 @@ def test_a_two_process_run_resumes_on_one_process(frozen_policy, tmp_path):
     assert progress["resumed"]["cursor"] == progress["straight"]["cursor"] and len(logs["resumed"]) == 2
     for key in ("success_rate", "rejection_rate", "episodes", "env_steps"):
         assert [r[key] for r in logs["resumed"]] == [r[key] for r in logs["straight"]], key
+
+
+def test_rsft_on_two_processes_keeps_every_success_once_and_identical_replicas(frozen_policy, tmp_path):
+    rank0, rank1 = stage_run("rsft", frozen_policy, tmp_path / "rsft", length=2, processes=2)
+    assert all(torch.equal(rank0[k], rank1[k]) for k in rank0)  # data-parallel fine-tune: same replicas
+    before = load_policy(frozen_policy)[0].state_dict()
+    assert any(not torch.equal(before[k], rank0[k]) for k in rank0)
+    saved = load_policy(tmp_path / "rsft" / "pretrained_model")[0].state_dict()
+    assert all(torch.equal(saved[k], rank0[k]) for k in rank0)
+    report = json.loads((tmp_path / "rsft" / "collection.json").read_text())
+    assert {task: r["kept"] for task, r in report.items()} == dict.fromkeys(report, 3) and len(report) == 2
+    files = sorted((tmp_path / "rsft" / "journal" / "episodes").glob("*/*.npz"))
+    assert len({(f.parent.name, f.name) for f in files}) == len(files) == 6  # each kept success once
+    assert json.loads((tmp_path / "rsft" / "train_state" / "progress.json").read_text()) == {"epochs_done": 2}

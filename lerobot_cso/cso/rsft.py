@@ -30,13 +30,14 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from accelerate import Accelerator
+from accelerate import Accelerator, DistributedDataParallelKwargs
 from lerobot.configs import parser
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
 from tqdm import tqdm
 
+from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
@@ -152,10 +153,12 @@ def collection_report(journal: Journal, tasks: list[str]) -> dict[str, dict[str,
 
 def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: Journal) -> None:
     """Roll out until every task holds ``successes_per_task`` successes (Algorithm 1, lines 2–9)."""
-    sampling, world = cfg.sampling, cfg.world()
-    for task in tasks:
-        journal.drop_unrecorded(task)
-    progress = tqdm(total=cfg.successes_per_task * len(tasks), desc="R-SFT successes")
+    sampling, world, main = cfg.sampling, cfg.world(), distributed.is_main()
+    if main:  # the journal is written by the main process alone; the others read it after each round
+        for task in tasks:
+            journal.drop_unrecorded(task)
+    distributed.wait_for_everyone()
+    progress = tqdm(total=cfg.successes_per_task * len(tasks), desc="R-SFT successes", disable=not main)
     progress.update(sum(len(journal.episode_files(t)) for t in tasks))
     while True:
         kept = {t: len(journal.episode_files(t)) for t in tasks}
@@ -182,9 +185,11 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
                 progress.update(1)
 
         result = engine.rollout(requests, k=cfg.n_strikes, sampling=sampling, seed=round_seed, on_episode=keep)
-        for group in result.groups():
-            first = group[0]
-            journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
+        if main:
+            for group in result.groups():
+                first = group[0]
+                journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
+        distributed.wait_for_everyone()
     progress.close()
 
 
@@ -277,8 +282,14 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     )
     optimizer = optimizer_cfg.build(policy.get_optim_params())
     scheduler = scheduler_cfg.build(optimizer, cfg.epochs * len(loader))
-    accelerator = Accelerator(cpu=policy.config.device == "cpu")
+    # Data-parallel under accelerate launch: a shard of every epoch per process, gradients all-reduced.
+    ddp = DistributedDataParallelKwargs(find_unused_parameters=True)  # the autoencoder takes no part in Eq. 6
+    accelerator = Accelerator(cpu=policy.config.device == "cpu", kwargs_handlers=[ddp])
     policy, optimizer, loader, scheduler = accelerator.prepare(policy, optimizer, loader, scheduler)
+    main = accelerator.is_main_process
+    if main:
+        ResumableState(cfg.output_dir / "train_state")  # undoes an interrupted save before any process reads it
+    accelerator.wait_for_everyone()
     state = ResumableState(cfg.output_dir / "train_state")
     start_epoch = (state.progress() or {"epochs_done": 0})["epochs_done"]
     if start_epoch:
@@ -293,12 +304,15 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
                 tracker, policy, pre(batch), optimizer, optimizer_cfg.grad_clip_norm, accelerator, scheduler
             )
             tracker.step()
-        print(f"R-SFT epoch {epoch + 1}/{cfg.epochs} ({len(starts)} decisions): {tracker}", flush=True)
-        state.save({"epochs_done": epoch + 1}, accelerator.save_state)
+        if main:
+            print(f"R-SFT epoch {epoch + 1}/{cfg.epochs} ({len(starts)} decisions): {tracker}", flush=True)
+        state.save({"epochs_done": epoch + 1}, accelerator.save_state, main, accelerator.wait_for_everyone)
     policy = accelerator.unwrap_model(policy)
     policy.set_encoders_frozen(True)  # Algorithm 1, line 11
     out = cfg.output_dir / "pretrained_model"
-    save_checkpoint(out, policy, pre, post)
+    if main:
+        save_checkpoint(out, policy, pre, post)
+    accelerator.wait_for_everyone()
     return out
 
 
@@ -311,18 +325,25 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = Rollou
     if (cfg.output_dir / "pretrained_model" / "config.json").is_file():
         print(f"{cfg.output_dir / 'pretrained_model'} exists: R-SFT already complete")
         return json.loads((cfg.output_dir / "collection.json").read_text())
+    main = distributed.is_main()
+    if main:  # creates the journal (or refuses one made with other settings) before any process opens it
+        Journal(cfg.output_dir / "journal", cfg.spec())
+        restore_interrupted_replace(cfg.output_dir / "buffer")
+    distributed.wait_for_everyone()
     journal = Journal(cfg.output_dir / "journal", cfg.spec())
-    restore_interrupted_replace(cfg.output_dir / "buffer")
     if not (cfg.output_dir / "buffer" / "meta" / "info.json").is_file():
         policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
-        with make_engine(policy, pre, post, cfg) as engine:
+        with distributed.ShardedRollouts(make_engine(policy, pre, post, cfg)) as engine:
             collect(cfg, tasks, engine, journal)
-        write_buffer(cfg, tasks, journal, policy.config.n_tokens)
+        if main:
+            write_buffer(cfg, tasks, journal, policy.config.n_tokens)
+        distributed.wait_for_everyone()
     report = collection_report(journal, tasks)
-    write_json(cfg.output_dir / "collection.json", report)
-    print(report_table(report))
-    if cfg.push_to_hub:
-        LeRobotDataset(cfg.repo_id, root=cfg.output_dir / "buffer").push_to_hub()
+    if main:
+        write_json(cfg.output_dir / "collection.json", report)
+        print(report_table(report))
+        if cfg.push_to_hub:
+            LeRobotDataset(cfg.repo_id, root=cfg.output_dir / "buffer").push_to_hub()
     finetune(cfg, cfg.output_dir / "buffer")
     return report
 

@@ -84,6 +84,7 @@ class SPOConfig(RolloutStageConfig):
     """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
 
     policy_role: ClassVar[str] = "the R-SFT checkpoint's pretrained_model directory"
+    records_frames: ClassVar[bool] = False  # the update reads the cached encoder contexts only
 
     output_dir: Path = Path("outputs/spo")
     # token (GRPO) | skill (SPO, Eq. 9) | trajectory (GSPO) | ript

@@ -111,5 +111,5 @@ class Libero:
             settings.vectorization,
             env_factory=factory,
             check_task=env.parse_task,
-            frames="all" if getattr(settings, "records_frames", True) else "decisions",
+            frames="all" if settings.records_frames else "decisions",
         )

@@ -25,6 +25,8 @@ class RolloutSettings(Protocol):
     num_envs: int
     vectorization: str
 
+    records_frames: bool  # the stage keeps every frame (else only decision frames need rendering)
+
     def world(self) -> World: ...
 
     def horizon(self) -> int:
