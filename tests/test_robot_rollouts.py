@@ -111,11 +111,18 @@ def finish(args: list[str], home: Path) -> tuple[int, str, str]:
     return process.returncode, out, err
 
 
-def emergency_stop(arm: EmulatorProcess) -> None:
-    """Press the e-stop from another program on the bus (0x150 01)."""
+def emergency_stop_until_exit(arm: EmulatorProcess, process) -> tuple[str, str]:
+    """Press the e-stop from another program on the bus (0x150 01) until ``process`` ends; returns its output.
+
+    Repeated: on a loaded machine the emulator's socket may drop a datagram, and an e-stop is idempotent."""
     frame = codec.encode_emergency_stop(codec.EmergencyStop(codec.EStopAction.STOP))
+    message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+    deadline = time.monotonic() + TIMEOUT_S
     with can.Bus(interface="udp_multicast", channel=arm.group, port=arm.port) as bus:
-        bus.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
+        while process.poll() is None and time.monotonic() < deadline:
+            bus.send(message)
+            time.sleep(0.05)
+    return process.communicate(timeout=30)
 
 
 @pytest.fixture(scope="module")
@@ -135,8 +142,7 @@ def rsft(arm, home, il_policy, tmp_path_factory) -> dict:
     Path(gates["1/2/0"]).touch()
     process = lerobot_cso(args, home)
     wait_for_episodes(out, len(killed) + 1, process)
-    emergency_stop(arm)
-    faulted_out, faulted_err = process.communicate(timeout=TIMEOUT_S)
+    faulted_out, faulted_err = emergency_stop_until_exit(arm, process)
     faulted = {"rc": process.returncode, "out": faulted_out, "err": faulted_err, "on_disk": journal_episodes(out)}
     Path(gates["2/1/0"]).touch()
     rc, final_out, final_err = finish([*args, "--robot.recovery=reset"], home)
