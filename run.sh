@@ -55,7 +55,9 @@ case "$cmd" in
     test)
         shift
         ruff check .
-        exec python -m pytest -q "$@" ;;
+        # One worker per core, one torch thread each; a test module stays on one worker, so its module-scoped
+        # fixtures are built once.
+        OMP_NUM_THREADS=1 exec python -m pytest -q -n auto --dist loadfile "$@" ;;
     help|-h|--help)
         sed -n 2,5p "$0" ;;
     *)
