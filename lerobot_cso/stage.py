@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -35,6 +36,29 @@ class Stage(Protocol):
 
     def run(self) -> Any:
         """Make (or resume) the output; returns a JSON-able summary."""
+
+
+class CheckpointStage:
+    """A rollout stage whose output is ``output_dir/pretrained_model`` (R-SFT, SPO); subclasses set ``name``
+    and ``run``. ``make_engine(policy, preprocessor, postprocessor, cfg)`` builds its rollout engine."""
+
+    name: str
+    redo_on_change = False
+
+    def __init__(self, cfg: Any, make_engine: Callable[..., Any] | None = None) -> None:
+        self.cfg, self.make_engine = cfg, make_engine
+
+    def spec(self) -> dict[str, Any]:
+        return {self.name: settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
+
+    def output(self) -> Path:
+        return self.cfg.output_dir
+
+    def policy(self) -> Path:
+        return self.cfg.output_dir / "pretrained_model"
+
+    def complete(self) -> bool:
+        return (self.policy() / "config.json").is_file()
 
 
 def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:

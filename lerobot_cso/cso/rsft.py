@@ -45,7 +45,7 @@ from lerobot_cso.errors import UsageError
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
 from lerobot_cso.rollout_stage import RolloutStageConfig
-from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
+from lerobot_cso.stage import CheckpointStage
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
 
@@ -358,29 +358,13 @@ def report_table(report: dict[str, dict[str, int]]) -> str:
     return "\n".join(lines)
 
 
-class RSFTStage:
+class RSFTStage(CheckpointStage):
     """The pipeline's R-SFT stage: the frozen-encoder checkpoint ``output_dir/pretrained_model``."""
 
     name = "rsft"
-    redo_on_change = False
-
-    def __init__(self, cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine.for_stage) -> None:
-        self.cfg, self.make_engine = cfg, make_engine
-
-    def spec(self) -> dict[str, Any]:
-        return {"rsft": settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
-
-    def output(self) -> Path:
-        return self.cfg.output_dir
-
-    def policy(self) -> Path:
-        return self.cfg.output_dir / "pretrained_model"
-
-    def complete(self) -> bool:
-        return (self.policy() / "config.json").is_file()
 
     def run(self) -> dict[str, Any]:
-        return run_rsft(self.cfg, self.make_engine)
+        return run_rsft(self.cfg, self.make_engine or RolloutEngine.for_stage)
 
 
 @parser.wrap()

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import matplotlib
 import numpy as np
@@ -50,7 +50,7 @@ from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import RolloutStageConfig
-from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
+from lerobot_cso.stage import CheckpointStage
 
 LOG_COLUMNS = (
     "iteration",
@@ -353,29 +353,13 @@ def run_spo(
     return history
 
 
-class SPOStage:
+class SPOStage(CheckpointStage):
     """The pipeline's SPO stage: the CSO checkpoint ``output_dir/pretrained_model`` and its history."""
 
     name = "spo"
-    redo_on_change = False
-
-    def __init__(self, cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine.for_stage) -> None:
-        self.cfg, self.make_engine = cfg, make_engine
-
-    def spec(self) -> dict[str, Any]:
-        return {"spo": settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
-
-    def output(self) -> Path:
-        return self.cfg.output_dir
-
-    def policy(self) -> Path:
-        return self.cfg.output_dir / "pretrained_model"
-
-    def complete(self) -> bool:
-        return (self.policy() / "config.json").is_file()
 
     def run(self) -> list[dict[str, float]]:
-        return run_spo(self.cfg, self.make_engine)
+        return run_spo(self.cfg, self.make_engine or RolloutEngine.for_stage)
 
     def history(self) -> list[dict[str, float]]:
         """The per-iteration log rows."""
