@@ -1,8 +1,9 @@
 """The imitation-learning stage: ``lerobot-train --policy.type=cso`` on the demos, as a subprocess.
 
-The run writes LeRobot's own output dir; a rerun continues with ``--resume=true`` from its last checkpoint
-(or starts over when it was killed before its first one). The policy is
-``<output_dir>/checkpoints/last/pretrained_model``.
+LeRobot's training runs through :mod:`lerobot_cso.train`, which serves camera-free demos from memory (identical
+items, no per-item Arrow query). The run writes LeRobot's own output dir; a rerun continues with
+``--resume=true`` from its last checkpoint (or starts over when it was killed before its first one). The policy
+is ``<output_dir>/checkpoints/last/pretrained_model``.
 """
 
 import dataclasses
@@ -133,9 +134,9 @@ def cli_value(value: Any) -> str:
 
 
 def lerobot_train(args: list[str], threads: int | None) -> None:
-    """Run ``lerobot-train`` (the one next to this interpreter) with our output streamed through."""
-    exe = Path(sys.executable).parent / "lerobot-train"
-    command = [str(exe) if exe.exists() else "lerobot-train", *args]
+    """Run ``lerobot-train`` (as :mod:`lerobot_cso.train`: camera-free demos served from memory) with our output
+    streamed through."""
+    command = [sys.executable, "-m", "lerobot_cso.train", *args]
     env = os.environ | ({"OMP_NUM_THREADS": str(threads)} if threads else {})
     print("[pipeline] " + " ".join(command), flush=True)
     returncode = subprocess.run(command, env=env).returncode

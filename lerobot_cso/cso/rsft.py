@@ -42,6 +42,7 @@ from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError
+from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
 from lerobot_cso.rollout_stage import RolloutStageConfig
@@ -274,7 +275,10 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     starts = np.flatnonzero(np.asarray(ds.hf_dataset[SKILL_START_KEY]).reshape(-1) == 1)
     generator = torch.Generator().manual_seed(cfg.seed)
     loader = torch.utils.data.DataLoader(
-        torch.utils.data.Subset(ds, starts.tolist()), batch_size=cfg.batch_size, shuffle=True, generator=generator
+        torch.utils.data.Subset(in_memory(ds), starts.tolist()),
+        batch_size=cfg.batch_size,
+        shuffle=True,
+        generator=generator,
     )
     optimizer_cfg = replace(policy.config.get_optimizer_preset(), lr=cfg.lr)
     scheduler_cfg = replace(
