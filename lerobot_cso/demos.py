@@ -14,6 +14,12 @@ and ``metaworld.success`` (the episode's outcome). The episode length is LeRobot
 generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other
 settings, or anything else, is refused.
 
+**An existing dataset instead** (``dataset_root``, with its ``repo_id``): for a world without a scripted expert
+(LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
+(LeRobot downloads it into ``dataset_root`` when the folder lacks it and the Hub is reachable). Nothing is
+generated: :class:`DatasetStage` checks that the dataset fits the world (``observation.state`` and ``action``
+shapes, camera names) and holds every task the run names (by language description), and IL trains on it.
+
 Durability: every finished episode is written at once, atomically, to ``<output_dir>.partial/`` (an
 :class:`~lerobot_cso.durable.EpisodeJournal`); the dataset is assembled from there when all episodes exist
 (appended with ``LeRobotDataset.resume`` when topping up an existing dataset) and swapped into place
@@ -32,6 +38,7 @@ from typing import Any
 import numpy as np
 from datasets.utils import logging as hf_logging
 from lerobot.configs import parser
+from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
@@ -39,8 +46,9 @@ from lerobot_cso.durable import EpisodeJournal, replace_dir, restore_interrupted
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.config import parse_cameras
 from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError
+from lerobot_cso.rollout.world import MetaWorld, SimWorld, world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 
 SPEC_FILE = "meta/cso_demos.json"
@@ -67,6 +75,9 @@ class DemosConfig:
     num_envs: int = 4
     output_dir: Path = Path("outputs/demos/metaworld")
     repo_id: str = "local/metaworld_demos"
+    # An existing LeRobotDataset (the dataset repo_id, in this folder) to use instead of generating demos; the
+    # only way for LIBERO, which has no scripted expert. The generation settings above are then unused.
+    dataset_root: Path | None = None
 
     def spec(self) -> dict[str, Any]:
         """The settings that determine episode content: a dataset only ever grows under one spec."""
@@ -81,11 +92,16 @@ class DemosConfig:
         }
 
     def validate(self) -> list[str]:
-        """Check every setting; returns the resolved task list. Raises ``UsageError``."""
-        try:
-            tasks = resolve_tasks(self.tasks)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
+        """Check every setting (and the given dataset); returns the resolved task list. Raises ``UsageError``."""
+        if self.dataset_root is not None:
+            return check_dataset(self)[0]
+        world = world_for(self.tasks)
+        tasks = _resolve(world, self.tasks)
+        if not isinstance(world, MetaWorld):
+            raise UsageError(
+                f"{world.name} has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
+                "--demos.dataset_root=<its folder> --demos.repo_id=<its repo id> (e.g. lerobot/libero_spatial)"
+            )
         if self.episodes_per_task <= 0:
             raise UsageError(f"episodes_per_task must be > 0, got {self.episodes_per_task}")
         if self.noise_std < 0:
@@ -98,6 +114,44 @@ class DemosConfig:
         if unknown:
             raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
         return tasks
+
+
+def _resolve(world: SimWorld, spec: str) -> list[str]:
+    try:
+        return world.resolve_tasks(spec)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
+    """The tasks of ``cfg`` and the metadata of the dataset at ``cfg.dataset_root``, checked to fit each other
+    and the tasks' world. Raises ``UsageError``."""
+    world = world_for(cfg.tasks)
+    tasks = _resolve(world, cfg.tasks)
+    root = cfg.dataset_root
+    try:
+        meta = LeRobotDatasetMetadata(cfg.repo_id, root=root)
+    except OSError as e:  # not on disk, and the Hub is unreachable or has no such dataset
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise UsageError(f"{root} holds no LeRobotDataset and {cfg.repo_id} could not be fetched: {reason}") from None
+    for key, dim in (("observation.state", world.state_dim), ("action", world.action_dim)):
+        shape = tuple(meta.features[key]["shape"]) if key in meta.features else None
+        if shape != (dim,):
+            raise UsageError(f"{root}: {world.name} needs '{key}' of shape ({dim},), the dataset has {shape}")
+    cameras = [key.removeprefix("observation.images.") for key in meta.camera_keys]
+    unknown = [cam for cam in cameras if cam not in world.cameras]
+    if unknown:
+        raise UsageError(
+            f"{root}: camera(s) {', '.join(unknown)} are not {world.name}'s; its cameras: {', '.join(world.cameras)}"
+        )
+    known = set(meta.tasks.index)
+    missing = [task for task in tasks if world.task_description(task) not in known]
+    if missing:
+        raise UsageError(
+            f"{root} has no episodes of {', '.join(missing)} (by task description); its tasks: "
+            + "; ".join(map(repr, sorted(known)))
+        )
+    return tasks, meta
 
 
 def dataset_features(cameras: Iterable[str], image_size: int) -> dict[str, dict]:
@@ -276,7 +330,7 @@ def generate_demos(cfg: DemosConfig) -> dict[str, Any]:
 
 
 class DemosStage:
-    """The pipeline's demo stage: the dataset at ``cfg.output_dir``."""
+    """The pipeline's demo stage: the dataset generated at ``cfg.output_dir``."""
 
     name = "demos"
     redo_on_change = False
@@ -298,9 +352,54 @@ class DemosStage:
         return generate_demos(self.cfg)
 
 
+class DatasetStage:
+    """The pipeline's demo stage over an existing dataset (``cfg.dataset_root``): checked, never generated.
+
+    Its spec names the dataset and its size, so a dataset that changed is checked again and the IL trained on
+    the old one is refused as stale.
+    """
+
+    name = "demos"
+    redo_on_change = True  # only a check: redoing it is cheap, and it never writes into the user's dataset
+
+    def __init__(self, cfg: DemosConfig) -> None:
+        self.cfg = cfg
+
+    def spec(self) -> dict[str, Any]:
+        tasks, meta = check_dataset(self.cfg)
+        dataset = {"root": str(self.cfg.dataset_root), "repo_id": self.cfg.repo_id}
+        return {"tasks": tasks, "dataset": dataset | {"episodes": meta.total_episodes, "frames": meta.total_frames}}
+
+    def output(self) -> Path:
+        return self.cfg.dataset_root
+
+    def complete(self) -> bool:
+        return (self.cfg.dataset_root / "meta" / "info.json").is_file()
+
+    def run(self) -> dict[str, Any]:
+        _, meta = check_dataset(self.cfg)
+        return {
+            "dataset_root": str(self.cfg.dataset_root),
+            "repo_id": self.cfg.repo_id,
+            "total_episodes": meta.total_episodes,
+            "total_frames": meta.total_frames,
+            "tasks": list(meta.tasks.index),
+        }
+
+
+def demos_stage(cfg: DemosConfig) -> DemosStage | DatasetStage:
+    """The demo stage of ``cfg``: the given dataset, or the generated one."""
+    return DemosStage(cfg) if cfg.dataset_root is None else DatasetStage(cfg)
+
+
 @parser.wrap()
 def demos_main(cfg: DemosConfig) -> None:
-    """Entry point of ``lerobot-cso demos``."""
+    """Entry point of ``lerobot-cso demos`` (with ``--dataset_root``: only checks that dataset)."""
+    if cfg.dataset_root is not None:
+        summary = DatasetStage(cfg).run()
+        episodes, frames = summary["total_episodes"], summary["total_frames"]
+        print(f"{cfg.dataset_root}: {episodes} episodes, {frames} frames; usable for --tasks={cfg.tasks}")
+        return
     summary = generate_demos(cfg)
     print(f"{summary['output_dir']}: {summary['total_episodes']} episodes ({summary['new_episodes']} new)")
     for task, info in summary["tasks"].items():

@@ -7,8 +7,12 @@ One draccus config holds a section per stage: ``demos`` (:class:`~lerobot_cso.de
 top-level ``tasks`` and ``output_dir`` propagate to every stage (setting them, or ``policy``, inside a
 section is refused); each stage's policy is the previous one's.
 
-Layout of ``output_dir``: ``demos/`` (the LeRobotDataset), ``il/`` (``lerobot-train``'s output dir),
-``rsft/``, ``spo/``, ``eval/{il,rsft,cso}/``, ``stages/<stage>.json`` (the settings each stage ran with,
+The demo stage generates scripted MetaWorld demonstrations, or, with ``demos.dataset_root`` (and
+``demos.repo_id``), checks an existing LeRobotDataset and hands it to IL instead: the way to run on LIBERO,
+which has no scripted expert (``--tasks=libero_spatial --demos.dataset_root=... --demos.repo_id=...``).
+
+Layout of ``output_dir``: ``demos/`` (the generated LeRobotDataset), ``il/`` (``lerobot-train``'s output
+dir), ``rsft/``, ``spo/``, ``eval/{il,rsft,cso}/``, ``stages/<stage>.json`` (the settings each stage ran with,
 whether it completed, and when), and the final ``results.md`` / ``results.json``.
 
 Every stage implements :class:`~lerobot_cso.stage.Stage` (its spec, its output, whether it is complete,
@@ -37,7 +41,7 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from lerobot_cso.cso.rsft import RSFTConfig, RSFTStage
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
-from lerobot_cso.demos import DemosConfig, DemosStage
+from lerobot_cso.demos import DemosConfig, demos_stage
 from lerobot_cso.durable import read_json, write_atomic, write_json
 from lerobot_cso.errors import UsageError
 from lerobot_cso.evaluation import EvalConfig, EvalStage
@@ -201,7 +205,7 @@ class Pipeline:
         if self.cfg.torch_threads:
             torch.set_num_threads(self.cfg.torch_threads)
         self.out.mkdir(parents=True, exist_ok=True)
-        demos = DemosStage(self.demos_config())
+        demos = demos_stage(self.demos_config())
         self.execute(demos)
         il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.cfg.torch_threads)
         self.execute(il, after="demos")

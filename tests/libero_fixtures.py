@@ -1,4 +1,5 @@
-"""Helpers of the LIBERO tests: a tiny two-camera cso policy, and success brought about through the simulator."""
+"""Helpers of the LIBERO tests: a tiny dataset recorded from LIBERO, and success brought about through the
+simulator."""
 
 from __future__ import annotations
 
@@ -6,19 +7,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.policies.factory import make_pre_post_processors
-from tiny_data import TINY_POLICY_KWARGS
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_cso.envs.libero_env import ACTION_DIM, STATE_DIM, CSOLiberoEnv, task_description
-from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.libero_env import ACTION_DIM, FPS, STATE_DIM, CSOLiberoEnv
 
 DRAWER_TASK = "libero_goal-0"  # open the middle drawer of the cabinet: success is one joint's position
 DRAWER_REGION = "wooden_cabinet_1_middle_region"
 OPEN = -0.15  # inside the wooden cabinet's open range [-0.16, -0.14]
 CAMERAS = ("image", "image2")
 IMAGE = 32  # small frames: software rendering costs scale with pixels
+REPO_ID = "local/libero_tiny"
 
 
 def open_drawer(env: CSOLiberoEnv) -> None:
@@ -39,29 +38,36 @@ class DrawerOpeningEnv(CSOLiberoEnv):
         return super().step(action)
 
 
-def save_tiny_libero_policy(path: Path) -> Path:
-    """A tiny untrained cso policy reading LIBERO's 8-d state and both cameras at 32x32, acting in 7-d."""
-    torch.manual_seed(0)
-    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (STATE_DIM,))}
-    for cam in CAMERAS:
-        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE))
-    config = CSOConfig(
-        **TINY_POLICY_KWARGS,
-        device="cpu",
-        push_to_hub=False,
-        n_autoencoder_steps=0,
-        tasks=[task_description(DRAWER_TASK)],
-        input_features=inputs,
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (ACTION_DIM,))},
-    )
-    stats: dict[str, dict[str, torch.Tensor]] = {
-        "observation.state": {"mean": torch.zeros(STATE_DIM), "std": torch.ones(STATE_DIM)},
-        "action": {"min": -torch.ones(ACTION_DIM), "max": torch.ones(ACTION_DIM)},
+class KeptDrawerOpeningEnv(DrawerOpeningEnv):
+    """A :class:`DrawerOpeningEnv` that outlives the pools it is lent to (their ``close`` leaves it open), so that
+    every stage of a pipeline reuses one MuJoCo model instead of building its own; :meth:`release` closes it."""
+
+    def close(self) -> None:
+        return None
+
+    def release(self) -> None:
+        super().close()
+
+
+def record_libero_dataset(env: CSOLiberoEnv, root: Path, episodes: int, steps: int) -> Path:
+    """A LeRobotDataset of ``episodes`` short episodes of ``env``'s task with LeRobot's LIBERO features (8-d
+    state, 7-d action, both cameras, the language instruction as the task): smooth scripted actions from
+    training placements that the tests' rollouts never use (the end of the training range)."""
+    image = {"dtype": "image", "shape": (env.image_size, env.image_size, 3), "names": ["height", "width", "channel"]}
+    features: dict[str, dict] = {
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
+        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": None},
+        **{f"observation.images.{cam}": image for cam in env.cameras},
     }
-    for cam in CAMERAS:
-        stats[f"observation.images.{cam}"] = {"mean": torch.zeros(3, 1, 1), "std": torch.ones(3, 1, 1)}
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    CSOPolicy(config).save_pretrained(path)
-    pre.save_pretrained(path)
-    post.save_pretrained(path)
-    return path
+    ds = LeRobotDataset.create(REPO_ID, FPS, features, root=root, robot_type="panda", use_videos=False)
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seeds.TRAIN.stop - 1 - episode)
+        for t in range(steps):
+            action = (0.5 * np.sin(t / 4 + np.arange(ACTION_DIM) + episode)).astype(np.float32)
+            frame = {"observation.state": obs["agent_pos"], "action": action, "task": env.task_description}
+            frame.update({f"observation.images.{cam}": obs["pixels"][cam] for cam in env.cameras})
+            ds.add_frame(frame)
+            obs = env.step(action)[0]
+        ds.save_episode()
+    ds.finalize()
+    return root

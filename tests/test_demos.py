@@ -188,3 +188,14 @@ def test_bad_input_is_one_clear_error_and_writes_nothing(demos, tmp_path, capsys
 
     code, err = run_cli(["demoz"], capsys)
     assert code == 2 and err == "error: unknown subcommand 'demoz'; choose one of: " + ", ".join(cli.SUBCOMMANDS)
+
+
+def test_a_given_dataset_is_checked_and_left_as_it_is(demos, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    stamp = {p: p.stat().st_mtime_ns for p in demos.rglob("*")}
+    assert cli.main(["demos", f"--tasks={DEMO_TASKS}", f"--dataset_root={demos}"]) == 0
+    frames = len(columns(demos)["index"])
+    assert capsys.readouterr().out.strip() == f"{demos}: 10 episodes, {frames} frames; usable for --tasks={DEMO_TASKS}"
+    code, err = run_cli(["demos", "--tasks=drawer-close-v3,reach-v3", f"--dataset_root={demos}"], capsys)
+    assert code == 2 and err.startswith(f"error: {demos} has no episodes of drawer-close-v3 (by task description)")
+    assert {p: p.stat().st_mtime_ns for p in demos.rglob("*")} == stamp

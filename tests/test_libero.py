@@ -1,18 +1,24 @@
-"""LIBERO, offline: set-up, the benchmark's init states, success, frame skipping, and R-SFT + SPO through the real
-code (the world, the env pool, the engine, the stages) with a tiny policy on ``libero_goal-0``.
+"""LIBERO, offline: set-up, the benchmark's init states, success, frame skipping, and the whole pipeline on a
+tiny LIBERO dataset recorded here: ``lerobot-train`` trains a tiny two-camera policy on it, then evaluation,
+R-SFT and SPO run through the real code (the world, the env pool, the engine, the stages) on ``libero_goal-0``.
 
 The envs render 32x32 frames and episodes stop at 16 steps, so that the whole file stays within a few minutes
-on two shared cores (building the first LIBERO env of a process takes 10-35 s).
+on two shared cores (building the first LIBERO env of a process takes 10-35 s, every hard reset a few seconds).
+An untrained policy never opens the drawer, so the pipeline's env opens it through the simulator on a
+pseudo-random half of the rollouts; its stages share one env (one MuJoCo model build).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
+import json
 import os
 import sys
 from functools import partial
 from pathlib import Path
 
+import draccus
 import numpy as np
 import pytest
 import yaml
@@ -21,17 +27,27 @@ from libero_fixtures import (
     CAMERAS,
     DRAWER_TASK,
     IMAGE,
-    DrawerOpeningEnv,
+    REPO_ID,
+    KeptDrawerOpeningEnv,
     open_drawer,
-    save_tiny_libero_policy,
+    record_libero_dataset,
 )
+from tiny_data import TINY_POLICY_KWARGS
 
-from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.cli import main
+from lerobot_cso.cso.rsft import RSFTConfig
+from lerobot_cso.cso.spo import SPOConfig
+from lerobot_cso.demos import DemosConfig
 from lerobot_cso.envs import libero_env, libero_setup, seeds
+from lerobot_cso.evaluation import EvalConfig
+from lerobot_cso.il import ILConfig
+from lerobot_cso.pipeline import Pipeline, PipelineConfig, run_pipeline
 from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.libero import Libero
 from lerobot_cso.rollout.pool import EnvPool
 from lerobot_cso.rollout.world import MetaWorld, world_for
+
+MAX_STEPS = 16  # episode cap of the pipeline's rollouts: the drawer opens at step 4 or never
 
 
 @pytest.fixture(scope="module")
@@ -167,22 +183,65 @@ def test_decision_only_rendering_gives_the_same_decision_frames(env):
         np.testing.assert_array_equal(seen, every[t]["pixels"]["image"])
 
 
-def test_rsft_buffer_holds_both_cameras_and_spo_runs_an_iteration_on_libero(tmp_path, monkeypatch):
-    from lerobot_cso.cso import rsft, spo
+@pytest.fixture(scope="module")
+def tiny_dataset(env, tmp_path_factory) -> Path:
+    return record_libero_dataset(env, tmp_path_factory.mktemp("libero") / "tiny", episodes=2, steps=16)
 
-    monkeypatch.setattr(libero_env, "CSOLiberoEnv", DrawerOpeningEnv)  # what the LIBERO world's backend builds
-    il = save_tiny_libero_policy(tmp_path / "il")
-    common = dict(tasks=DRAWER_TASK, num_envs=2, vectorization="sync", max_steps=16)
-    cfg = rsft.RSFTConfig(
-        **common, output_dir=tmp_path / "rsft", successes_per_task=1, n_strikes=2, states_per_round=1,
-        max_states_per_task=8, epochs=1, batch_size=4,
+
+def tiny_pipeline(dataset: Path, out: Path) -> PipelineConfig:
+    """The whole pipeline on ``libero_goal-0`` from ``dataset``, one or two episodes per stage, sync envs."""
+    rollouts = dict(num_envs=1, vectorization="sync", max_steps=MAX_STEPS)
+    return PipelineConfig(
+        tasks=DRAWER_TASK,
+        output_dir=out,
+        demos=DemosConfig(dataset_root=dataset, repo_id=REPO_ID),
+        il=ILConfig(
+            steps=4, n_autoencoder_steps=2, batch_size=4, num_workers=0, save_freq=4, log_freq=2,
+            policy={**TINY_POLICY_KWARGS, "device": "cpu"},
+        ),
+        eval=EvalConfig(**rollouts, episodes_per_task=1),
+        rsft=RSFTConfig(
+            **rollouts, successes_per_task=1, n_strikes=2, states_per_round=1, max_states_per_task=8, epochs=1,
+            batch_size=4,
+        ),
+        spo=SPOConfig(
+            **rollouts, iterations=1, groups_per_iteration=1, group_size=2, epochs=1, minibatch_trajectories=2,
+            max_draw_factor=1, lr=1e-3,
+        ),
     )  # fmt: skip
-    cfg.policy = load_policy(il)[0].config
-    cfg.policy.pretrained_path = il
-    report = rsft.run_rsft(cfg)[DRAWER_TASK]
-    assert report["kept"] == 1 and report["rollouts"] >= 1
-    buffer = LeRobotDataset("local/cso_rsft_buffer", root=tmp_path / "rsft" / "buffer")
-    assert buffer.meta.robot_type == "panda" and buffer.meta.fps == 20
+
+
+def test_pipeline_trains_on_a_given_libero_dataset_then_runs_rsft_and_spo(tiny_dataset, tmp_path, monkeypatch):
+    shared = KeptDrawerOpeningEnv(DRAWER_TASK, CAMERAS, IMAGE, MAX_STEPS)
+
+    def lend(task: str, cameras: tuple[str, ...], image_size: int, max_steps: int) -> KeptDrawerOpeningEnv:
+        assert (cameras, image_size, max_steps) == (CAMERAS, IMAGE, MAX_STEPS)  # what the trained policy reads
+        return shared
+
+    monkeypatch.setattr(libero_env, "CSOLiberoEnv", lend)  # what the LIBERO world's backend builds
+    out = tmp_path / "run"
+    try:
+        results = run_pipeline(tiny_pipeline(tiny_dataset, out))
+    finally:
+        shared.release()
+
+    # The demo stage only checked the dataset; IL is lerobot-train on it, and reads both cameras and the state.
+    assert not (out / "demos").exists()
+    demos = json.loads((out / "stages" / "demos.json").read_text())
+    assert demos["summary"]["total_episodes"] == 2 and demos["summary"]["tasks"] == [shared.task_description]
+    train = json.loads((out / "il" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
+    assert Path(train["dataset"]["root"]) == tiny_dataset and train["dataset"]["repo_id"] == REPO_ID
+    assert train["steps"] == 4 and train["policy"]["type"] == "cso"
+    features = train["policy"]["input_features"]
+    assert {k: v["shape"] for k, v in features.items()} == {
+        "observation.state": [8],
+        **{f"observation.images.{cam}": [3, IMAGE, IMAGE] for cam in CAMERAS},
+    }
+    assert set(results["success_rate"]) == {"il", "rsft", "cso"}
+
+    # R-SFT kept one success from a training placement, with every frame of both cameras.
+    buffer = LeRobotDataset("local/cso_rsft_buffer", root=out / "rsft" / "buffer")
+    assert buffer.meta.robot_type == "panda" and buffer.meta.fps == 20 and buffer.meta.total_episodes == 1
     item = buffer[0]
     assert item["observation.state"].shape == (8,) and item["action"].shape == (7,)
     assert item["task"] == "open the middle drawer of the cabinet"
@@ -194,13 +253,46 @@ def test_rsft_buffer_holds_both_cameras_and_spo_runs_an_iteration_on_libero(tmp_
         assert images.shape[1:] == (3, IMAGE, IMAGE) and images.std() > 0
         assert not np.array_equal(images[0], images[-1])  # every frame rendered, not repeated
 
-    policy = tmp_path / "rsft" / "pretrained_model"
-    spo_cfg = spo.SPOConfig(
-        **common, output_dir=tmp_path / "spo", iterations=1, groups_per_iteration=1, group_size=2, epochs=1,
-        minibatch_trajectories=2, max_draw_factor=1, lr=1e-3,
-    )  # fmt: skip
-    spo_cfg.policy = load_policy(policy)[0].config
-    spo_cfg.policy.pretrained_path = policy
-    history = spo.run_spo(spo_cfg)
-    assert len(history) == 1 and history[0]["episodes"] >= 2
-    assert (tmp_path / "spo" / "pretrained_model" / "model.safetensors").is_file()
+    # One SPO iteration from the R-SFT checkpoint.
+    [iteration] = [json.loads(line) for line in (out / "spo" / "log.jsonl").read_text().splitlines()]
+    assert iteration["episodes"] >= 2
+    assert (out / "spo" / "pretrained_model" / "model.safetensors").is_file()
+
+    # A rerun finds every stage complete, the given dataset included.
+    again = run_pipeline(tiny_pipeline(tiny_dataset, out))
+    assert again["table"] == results["table"]
+    assert json.loads((out / "stages" / "demos.json").read_text())["finished_at"] == demos["finished_at"]
+
+
+def test_pipeline_on_libero_without_a_fitting_dataset_is_one_error_line(
+    tiny_dataset, synthetic_dataset, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # the CLI hands its arguments to the parser via sys.argv
+    given = [f"--demos.dataset_root={tiny_dataset}", f"--demos.repo_id={REPO_ID}"]
+    cases = [
+        ([], "libero has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
+             "--demos.dataset_root=<its folder> --demos.repo_id=<its repo id>"),
+        (["--demos.dataset_root=/nonexistent/libero", f"--demos.repo_id={REPO_ID}"],
+         f"/nonexistent/libero holds no LeRobotDataset and {REPO_ID} could not be fetched"),
+        ([f"--demos.dataset_root={synthetic_dataset}", "--demos.repo_id=local/synthetic"],
+         f"{synthetic_dataset}: libero needs 'observation.state' of shape (8,), the dataset has (6,)"),
+    ]  # fmt: skip
+    for args, message in cases:
+        assert main(["pipeline", f"--tasks={DRAWER_TASK}", f"--output_dir={tmp_path / 'run'}", *args]) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: {message}")
+    assert main(["pipeline", "--tasks=libero_goal-0,libero_goal-1", f"--output_dir={tmp_path / 'run'}", *given]) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error == (
+        f"error: {tiny_dataset} has no episodes of libero_goal-1 (by task description); its tasks: "
+        "'open the middle drawer of the cabinet'"
+    )
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_libero_pipeline_config_validates_with_a_dataset(tiny_dataset, tmp_path):
+    with open(Path(__file__).parents[1] / "configs" / "libero_pipeline.yaml") as f:
+        cfg = draccus.load(PipelineConfig, f)
+    assert (cfg.tasks, cfg.demos.repo_id, cfg.spo.iterations) == ("libero_spatial", "lerobot/libero_spatial", 30)
+    demos = dataclasses.replace(cfg.demos, dataset_root=tiny_dataset, repo_id=REPO_ID)
+    ours = dataclasses.replace(cfg, tasks=DRAWER_TASK, output_dir=tmp_path / "run", demos=demos)
+    assert Pipeline(ours).tasks == [DRAWER_TASK]  # every section checked, as before a real run

@@ -63,6 +63,18 @@ class Libero:
         self.spec = tasks
 
     @property
+    def state_dim(self) -> int:
+        return _env().STATE_DIM
+
+    @property
+    def action_dim(self) -> int:
+        return _env().ACTION_DIM
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return tuple(_env().CAMERAS)
+
+    @property
     def horizon(self) -> int:
         """The longest standard horizon of the suites the spec names."""
         env = _env()

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from typing import Literal, Protocol
 
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import FPS, HORIZON
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, STATE_DIM
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.rollout.backend import RolloutBackend
 
@@ -59,11 +59,22 @@ class World(Protocol):
         """A backend rolling out on this world with the given settings and cameras."""
 
 
+class SimWorld(World, Protocol):
+    """A simulated world: the shapes of its observations and actions, which a dataset for it must have."""
+
+    state_dim: int  # observation.state
+    action_dim: int  # action
+    cameras: tuple[str, ...]  # the cameras its envs render (observation.images.<camera>)
+
+
 class MetaWorld:
     """MetaWorld v3: seeded initial states, a pool of vector envs (:class:`~lerobot_cso.rollout.pool.EnvPool`)."""
 
     name = "metaworld"
     robot_type = "sawyer"
+    state_dim = STATE_DIM
+    action_dim = ACTION_DIM
+    cameras = CAMERAS
     fps = FPS
     horizon = HORIZON
     eval_seeds = len(seeds.EVAL) // seeds.EVAL_BLOCK
@@ -87,7 +98,7 @@ class MetaWorld:
         return EnvPool(settings.num_envs, cameras, max_steps=settings.horizon(), vectorization=settings.vectorization)
 
 
-def world_for(tasks: str) -> World:
+def world_for(tasks: str) -> SimWorld:
     """The world whose tasks ``tasks`` names (MetaWorld unless another world claims them)."""
     from lerobot_cso.rollout.libero import Libero, names_libero
 
