@@ -2,12 +2,16 @@
 
 Each subcommand is a function decorated with ``lerobot.configs.parser.wrap()`` over a draccus dataclass,
 so it is configured exactly like LeRobot's own scripts. Registering one is one line in ``SUBCOMMANDS``.
-Bad input raises :class:`~lerobot_cso.errors.UsageError`: one ``error: ...`` line on stderr, exit code 2.
+Bad input raises :class:`~lerobot_cso.errors.UsageError`: one ``error: ...`` line on stderr, exit code 2 — also
+what the argument parser rejects (an unknown ``--robot.type``, a misspelt option), without its usage dump.
 """
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import NoReturn
 
+from draccus.wrappers.suppressing_argparse import SuppressingArgumentParser
 from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_cso.cso.rsft import rsft_main
@@ -31,6 +35,21 @@ def _usage() -> str:
     return f"usage: lerobot-cso {{{names}}} [--key=value ...] [--config_path=FILE.yaml]  (--help per subcommand)"
 
 
+@contextmanager
+def _parse_errors_as_usage_errors() -> Iterator[None]:
+    """Make draccus's parser raise its error as a ``UsageError`` instead of printing every option first."""
+
+    def error(parser: SuppressingArgumentParser, message: str) -> NoReturn:
+        raise UsageError(message)
+
+    original = SuppressingArgumentParser.error
+    SuppressingArgumentParser.error = error  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        SuppressingArgumentParser.error = original  # type: ignore[method-assign]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch on the first argument; the rest is parsed by the subcommand's config (LeRobot style)."""
     args = sys.argv[1:] if argv is None else argv
@@ -45,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
     register_third_party_plugins()
     try:
-        command()
+        with _parse_errors_as_usage_errors():
+            command()
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -5,7 +5,9 @@ a scripted operator (:class:`~lerobot_cso.rollout.operator.ScriptedOperator`): s
 arm's measured pose per arranged state, key presses are injected per (state, attempt, retry). The R-SFT
 collection is killed with SIGKILL and resumed, then hit by an e-stop sent on the bus (the episode is discarded)
 and resumed again with ``--robot.recovery=reset``; SPO is killed and resumed mid-iteration and its update may
-change only the prior; ``lerobot-rollout`` drives the final checkpoint.
+change only the prior; ``lerobot-rollout`` drives the final checkpoint. ``--display_data`` is checked on an eval
+with rerun kept in memory, bad input as one error line of the real CLI, and the in-place recovery of
+``--operator.on_fault=wait`` against the frames on the bus.
 """
 
 from __future__ import annotations
@@ -13,8 +15,9 @@ from __future__ import annotations
 import json
 import re
 import signal
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
@@ -111,18 +114,17 @@ def finish(args: list[str], home: Path) -> tuple[int, str, str]:
     return process.returncode, out, err
 
 
-def emergency_stop_until_exit(arm: EmulatorProcess, process) -> tuple[str, str]:
-    """Press the e-stop from another program on the bus (0x150 01) until ``process`` ends; returns its output.
+def emergency_stop_until(arm: EmulatorProcess, done: Callable[[], bool]) -> None:
+    """Press the e-stop from another program on the bus (0x150 01) until ``done()``.
 
     Repeated: on a loaded machine the emulator's socket may drop a datagram, and an e-stop is idempotent."""
     frame = codec.encode_emergency_stop(codec.EmergencyStop(codec.EStopAction.STOP))
     message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
     deadline = time.monotonic() + TIMEOUT_S
     with can.Bus(interface="udp_multicast", channel=arm.group, port=arm.port) as bus:
-        while process.poll() is None and time.monotonic() < deadline:
+        while not done() and time.monotonic() < deadline:
             bus.send(message)
             time.sleep(0.05)
-    return process.communicate(timeout=30)
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +144,8 @@ def rsft(arm, home, il_policy, tmp_path_factory) -> dict:
     Path(gates["1/2/0"]).touch()
     process = lerobot_cso(args, home)
     wait_for_episodes(out, len(killed) + 1, process)
-    faulted_out, faulted_err = emergency_stop_until_exit(arm, process)
+    emergency_stop_until(arm, lambda: process.poll() is not None)
+    faulted_out, faulted_err = process.communicate(timeout=30)
     faulted = {"rc": process.returncode, "out": faulted_out, "err": faulted_err, "on_disk": journal_episodes(out)}
     Path(gates["2/1/0"]).touch()
     rc, final_out, final_err = finish([*args, "--robot.recovery=reset"], home)
@@ -254,31 +257,216 @@ def other_policies(home) -> dict[str, Path]:
     }
 
 
+def camera_args(path: int | str) -> str:
+    """``--robot.cameras`` with one 32x32 OpenCV camera ``cam`` at ``path``."""
+    return f"--robot.cameras={{cam: {{type: opencv, index_or_path: {path}, width: 32, height: 32, fps: 30}}}}"
+
+
+class CountingCamera:
+    """Stands in for the OpenCV camera ``cam`` (none on the test machine): every read is a new frame."""
+
+    def __init__(self, height: int, width: int) -> None:
+        self.shape, self.reads, self.is_connected = (height, width, 3), 0, False
+
+    def connect(self) -> None:
+        self.is_connected = True
+
+    def read_latest(self, max_age_ms: int = 500) -> np.ndarray:
+        self.reads += 1
+        return np.full(self.shape, self.reads % 256, dtype=np.uint8)
+
+    def disconnect(self) -> None:
+        self.is_connected = False
+
+
+def test_display_data_logs_cameras_joints_sent_actions_and_the_current_skill(
+    arm, other_policies, monkeypatch, tmp_path
+):
+    """``--display_data=true`` on a real eval in this process: rerun gets no viewer (a memory sink instead of
+    ``spawn``), and every policy tick logs the frame and joints it decided from, the action sent and the skill
+    being executed, exactly as journaled."""
+    import lerobot.utils.visualization_utils as visualization
+    import lerobot_robot_piper.piper_follower as piper_follower
+    import rerun
+
+    monkeypatch.setattr(rerun, "spawn", lambda **kw: rerun.memory_recording())
+    paths: set[str] = set()
+    shown: list[tuple[dict, dict | None]] = []
+    rerun_log, log_data = rerun.log, visualization.log_visualization_data
+
+    def log(path: str, *args, **kwargs) -> None:
+        paths.add(path)
+        rerun_log(path, *args, **kwargs)
+
+    def capture(mode: str, observation: dict, action: dict | None) -> None:
+        shown.append((dict(observation), action))
+        log_data(mode, observation=observation, action=action)
+
+    def cameras(configs: dict) -> dict[str, CountingCamera]:
+        return {name: CountingCamera(c.height, c.width) for name, c in configs.items()}
+
+    monkeypatch.setattr(rerun, "log", log)
+    monkeypatch.setattr(visualization, "log_visualization_data", capture)
+    monkeypatch.setattr(piper_follower, "make_cameras_from_configs", cameras)
+    monkeypatch.setattr("sys.argv", ["lerobot-cso"])
+    script = write_script(tmp_path / "eval.json", {"default": FAR}, {"1/1/0": [10, "success"]}, 0.1, {})
+    args = ["eval", f"--policy.path={other_policies['camera']}", *robot_args(arm), camera_args(0), *EPISODE]
+    args += [f"--output_dir={tmp_path / 'out'}", "--operator.type=scripted", f"--operator.script={script}"]
+    assert cli.main([*args, "--episodes_per_task=2", "--display_data=true"]) == 0
+
+    policy_ticks = [(obs, action) for obs, action in shown if action is not None]
+    assert all("skill.index" not in obs for obs, action in shown if action is None)  # the arrange phase
+    episodes = sorted((tmp_path / "out" / "robot_journal" / "episodes").glob("*/*.npz"))
+    journal = [np.load(p) for p in episodes]
+    assert [int(e["length"]) for e in journal] == [15, 11]
+    assert len(policy_ticks) == 26
+    joints, ticks = [f"joint_{j}.pos" for j in range(1, 7)] + ["gripper.pos"], iter(policy_ticks)
+    for episode in journal:
+        decisions = episode["record_decision_steps"].tolist()
+        assert decisions == [0, 8]
+        for t in range(int(episode["length"])):
+            obs, action = next(ticks)
+            skill = sum(step <= t for step in decisions) - 1
+            np.testing.assert_array_equal(obs["cam"], episode["image_cam"][t])
+            np.testing.assert_allclose([obs[k] for k in joints], episode["states"][t], rtol=0, atol=1e-6)
+            np.testing.assert_allclose([action[k] for k in joints], episode["actions"][t], rtol=0, atol=1e-6)
+            assert obs["skill.index"] == skill
+            np.testing.assert_array_equal(obs["skill.tokens"], episode["record_tokens"][skill])
+    expected = {"observation.cam", "observation.skill.index", "observation.skill.tokens"}
+    expected |= {f"observation.{k}" for k in joints} | {f"action.{k}" for k in joints}
+    assert expected <= paths, sorted(expected - paths)
+
+
+@pytest.fixture(scope="module")
+def bad_input(arm, il_policy, other_policies, home, tmp_path_factory) -> dict[str, tuple[int, str]]:
+    """Each bad command line of the real CLI, all started at once: case -> (exit code, stderr)."""
+    out, ops = tmp_path_factory.mktemp("bad"), tmp_path_factory.mktemp("bad_ops")
+    script = write_script(ops / "none.json", {}, {}, 0.1, {})
+    common = [f"--tasks={TASK}", "--operator.fps=30", "--operator.type=scripted", f"--operator.script={script}"]
+    piper = ["--robot.type=piper_follower", "--robot.motion_mode=position"]  # a mode: no warning about it
+    nobody = unique_udp_channel()
+    cases = {
+        "unknown robot": [f"--policy.path={other_policies['camera']}", "--robot.type=nosuch"],
+        "other features": [f"--policy.path={other_policies['state39']}", *piper],
+        "camera not on the robot": [f"--policy.path={other_policies['camera']}", *piper],
+        "camera that does not open": [
+            f"--policy.path={other_policies['camera']}",
+            *piper,
+            *robot_args(arm)[1:],
+            camera_args(ops / "no_cam"),
+        ],
+        "arm not on the bus": [
+            f"--policy.path={il_policy}",
+            *piper,
+            "--robot.interface=udp_multicast",
+            f"--robot.channel={nobody[0]}",
+            f"--robot.port={nobody[1]}",
+        ],
+    }
+    processes = {
+        case: lerobot_cso(["eval", *args, *common, f"--output_dir={out / str(i)}"], home)
+        for i, (case, args) in enumerate(cases.items())
+    }
+    errors = {case: p.communicate(timeout=TIMEOUT_S)[1] for case, p in processes.items()}
+    return {case: (processes[case].returncode, err) for case, err in errors.items()}
+
+
 @pytest.mark.parametrize(
-    ("policy", "extra", "message"),
+    ("case", "code", "message"),
     [
+        ("unknown robot", 2, "error: argument --robot.type: invalid choice: 'nosuch' (choose from "),
         (
-            "state39",
-            [],
+            "other features",
+            2,
             "error: the policy reads observation.state of shape (39,), but robot piper_follower observes 7 values",
         ),
-        ("camera", [], "error: the policy reads camera 'cam', but robot piper_follower has cameras: none"),
-        ("camera", ["--operator.type=mouse"], "error: operator.type must be one of keyboard, scripted"),
+        (
+            "camera not on the robot",
+            2,
+            "error: the policy reads camera 'cam', but robot piper_follower has cameras: none",
+        ),
+        (
+            "camera that does not open",
+            1,
+            "error: robot piper_follower did not connect: ConnectionError: Failed to open OpenCVCamera(",
+        ),
+        ("arm not on the bus", 1, "error: robot piper_follower did not connect: PiperConnectionError: no PiPER heard"),
     ],
 )
-def test_bad_input_is_one_error_line(other_policies, policy, extra, message, capsys, monkeypatch, tmp_path):
-    monkeypatch.setattr("sys.argv", ["lerobot-cso"])
-    args = ["eval", f"--policy.path={other_policies[policy]}", "--robot.type=piper_follower", f"--tasks={TASK}"]
-    assert cli.main([*args, f"--output_dir={tmp_path}", "--operator.fps=30", *extra]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith(message), err[-1]
-    assert sum(line.startswith("error:") for line in err) == 1
+def test_bad_input_is_one_error_line_and_a_non_zero_exit(bad_input, case, code, message):
+    """One ``error:`` line, last; before it at most what the robot logged while it tried to connect."""
+    rc, err = bad_input[case]
+    *before, last = err.strip().splitlines()
+    assert rc == code, err[-3000:]
+    assert last.startswith(message), err[-3000:]
+    connecting = code == 1
+    assert all(connecting and line.startswith(("WARNING:", "INFO:")) for line in before), err[-3000:]
 
 
-def test_an_unknown_robot_is_refused_by_the_parser(other_policies, capsys, monkeypatch, tmp_path):
+def test_an_unknown_operator_is_one_error_line(other_policies, capsys, monkeypatch, tmp_path):
     monkeypatch.setattr("sys.argv", ["lerobot-cso"])
-    with pytest.raises(SystemExit) as exit_info:
-        cli.main(["eval", f"--policy.path={other_policies['camera']}", "--robot.type=nosuch", f"--tasks={TASK}"])
-    assert exit_info.value.code == 2
-    last = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "error: argument --robot.type: invalid choice: 'nosuch'" in last
+    args = ["eval", f"--policy.path={other_policies['camera']}", "--robot.type=piper_follower", f"--tasks={TASK}"]
+    assert cli.main([*args, f"--output_dir={tmp_path}", "--operator.fps=30", "--operator.type=mouse"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: operator.type must be one of keyboard, scripted, got 'mouse'"
+    ]
+
+
+class FrameLog:
+    """Every frame on a udp channel as (kernel receive time, id, data), from a thread."""
+
+    def __init__(self, arm: EmulatorProcess) -> None:
+        self.frames: list[tuple[float, int, bytes]] = []
+        self._bus = can.Bus(interface="udp_multicast", channel=arm.group, port=arm.port)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self._bus.recv(timeout=0.05)
+            if msg is not None:
+                self.frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self._bus.shutdown()
+
+
+def test_with_on_fault_wait_the_operator_recovers_the_arm_in_place_and_nothing_reaches_it_meanwhile(
+    arm, il_policy, home, tmp_path
+):
+    """An eval of 2 trials with ``--operator.on_fault=wait``: trial 1 is e-stopped while it waits to start; the
+    command discards it, disconnects and waits for the operator (a gate), sends no motion frame until it has
+    reconnected with a reset, then repeats trial 1 and ends normally."""
+    out, recovered = tmp_path / "out", tmp_path / "recovered"
+    gates = {"1/1/0": str(tmp_path / "never"), "recover/1/1/0": str(recovered)}
+    script = write_script(tmp_path / "eval.json", {"default": NEAR}, {}, 0.1, gates)
+    args = ["eval", f"--policy.path={il_policy}", *robot_args(arm), *EPISODE, f"--output_dir={out}"]
+    args += ["--operator.type=scripted", f"--operator.script={script}", "--episodes_per_task=2"]
+    args += ["--operator.on_fault=wait", "--robot.recovery=reset"]
+    records = out / "robot_journal" / "records"
+    frames = FrameLog(arm)
+    try:
+        process = lerobot_cso(args, home)
+        wait_for_episodes(out, 1, process)
+        emergency_stop_until(arm, lambda: any(records.glob("*/0000001_001.json")) or process.poll() is not None)
+        assert process.poll() is None, process.communicate()[1][-3000:]
+        waiting_since = time.time()
+        time.sleep(1.0)  # the operator recovers the arm
+        recovered.touch()
+        stdout, stderr = process.communicate(timeout=TIMEOUT_S)
+    finally:
+        frames.stop()
+    assert process.returncode == 0, stderr[-3000:]
+    assert journal_episodes(out) == {"0000000_001", "0000001_001"}
+    discarded = json.loads(next(records.glob("*/0000001_001.json")).read_text())["discarded"]
+    assert len(discarded) == 1 and "emergency stop" in discarded[0], discarded
+    assert "robot fault in state 1, attempt 1: FirmwareFaultError" in stdout
+    assert "reconnected; state 1, attempt 1 again" in stdout and live_episodes(stdout)[-1] == "0000001_001"
+    resets = [t for t, i, data in frames.frames if i == codec.ID_EMERGENCY_STOP and data[0] == codec.EStopAction.RESUME]
+    reset_at = min(t for t in resets if t > waiting_since)
+    motion = [t for t, i, _ in frames.frames if i in codec.ID_JOINT_COMMAND and waiting_since < t < reset_at]
+    assert not motion, f"{len(motion)} joint commands reached the e-stopped arm"
+    assert any(i in codec.ID_JOINT_COMMAND and t > reset_at for t, i, _ in frames.frames)

@@ -40,6 +40,16 @@ class Trace:
     record: Any = None  # whatever the controller returned from ``finish``
 
 
+@dataclass(frozen=True)
+class ActiveSkill:
+    """The skill a slot is executing: its index among the episode's decisions (0 = the first), the step it
+    was chosen at, and its tokens."""
+
+    index: int
+    step: int
+    tokens: tuple[int, ...]
+
+
 class Controller(Protocol):
     """Chooses the actions of every slot of a backend."""
 
@@ -52,6 +62,9 @@ class Controller(Protocol):
 
     def finish(self, slot: int) -> Any:
         """The episode in ``slot`` ended; return the controller's record of it (or None)."""
+
+    def current_skill(self, slot: int) -> ActiveSkill | None:
+        """The skill ``slot`` is executing; None before its first decision, or for a controller without skills."""
 
 
 class RolloutBackend(Protocol):

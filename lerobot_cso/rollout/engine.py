@@ -32,7 +32,7 @@ from lerobot.envs.utils import preprocess_observation
 from lerobot.utils.constants import OBS_IMAGES
 from torch import Tensor
 
-from lerobot_cso.rollout.backend import Job, RolloutBackend, Trace
+from lerobot_cso.rollout.backend import ActiveSkill, Job, RolloutBackend, Trace
 
 if TYPE_CHECKING:
     from lerobot_cso.rollout.world import RolloutSettings
@@ -219,6 +219,12 @@ class _PolicyController:
             self.steps[slot] += chunks.shape[1]
         self.policy_seconds += time.perf_counter() - started
         return actions
+
+    def current_skill(self, slot: int) -> ActiveSkill | None:
+        if not self.decisions[slot]:
+            return None
+        step, _, tokens, _ = self.decisions[slot][-1]
+        return ActiveSkill(len(self.decisions[slot]) - 1, step, tuple(tokens.tolist()))
 
     def finish(self, slot: int) -> dict[str, Tensor]:
         steps, contexts, tokens, logprobs = zip(*self.decisions[slot], strict=True)

@@ -41,3 +41,6 @@ class ExpertController:
 
     def finish(self, slot: int) -> None:
         self._experts[slot] = self._rngs[slot] = None
+
+    def current_skill(self, slot: int) -> None:
+        return None  # an expert acts step by step, not by skills

@@ -1,25 +1,28 @@
 """The person at the robot: arranges each initial state and labels each episode.
 
-A robot rollout (:mod:`lerobot_cso.rollout.robot`) asks its :class:`Operator` two things: during the arrange
-phase, whether the scene is ready (:meth:`Operator.ready`), and at every control tick of the policy, whether the
-episode has a verdict yet (:meth:`Operator.verdict`): ``success``, ``failure`` or ``discard`` (not counted, the
-attempt is repeated). No verdict by the time limit is a failure.
+A robot rollout (:mod:`lerobot_cso.rollout.robot`) asks its :class:`Operator`: during the arrange phase, whether
+the scene is ready (:meth:`Operator.ready`); at every control tick of the policy, whether the episode has a
+verdict yet (:meth:`Operator.verdict`): ``success``, ``failure`` or ``discard`` (not counted, the attempt is
+repeated), no verdict by the time limit being a failure; and with ``--operator.on_fault=wait``, after a robot
+fault, when the arm is recovered and may be connected again (:meth:`Operator.wait_for_recovery`).
 
 * :class:`KeyboardOperator` (``--operator.type=keyboard``): LeRobot's key listener (the one ``lerobot-record``
   uses: pynput on a desktop, the terminal otherwise). Enter / space / n / right arrow: the scene is arranged,
-  start; s: success; f: failure; d: discard; q / Esc: stop (the episode in flight is discarded, a rerun
-  resumes at it).
+  start (after a fault: the arm is recovered, reconnect); s: success; f: failure; d: discard; q / Esc: stop
+  (the episode in flight is discarded, a rerun resumes at it).
 * :class:`ScriptedOperator` (``--operator.type=scripted --operator.script=FILE.json``): a stand-in for tests
   and dry runs. Arranging takes no time; key presses come from the script, keyed by
   ``"<state>/<attempt>/<retry>"`` (attempt from 1, retry = how many times this attempt was discarded before)
   as ``[tick, verdict]``; without a key, the last tick is judged by a rule on the measured pose: success when
   every value named in the state's target is within ``tolerance`` of it. ``gates`` hold an episode in its
-  arrange phase until a file exists (a test stops or faults the command there).
+  arrange phase until a file exists (a test stops or faults the command there); a gate keyed
+  ``"recover/<state>/<attempt>/<retry>"`` holds the wait after a fault of that try (no such gate: stop).
 """
 
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -29,6 +32,8 @@ from lerobot_cso.errors import UsageError
 Verdict = Literal["success", "failure", "discard"]
 VERDICTS: tuple[str, ...] = ("success", "failure", "discard")
 OPERATORS: tuple[str, ...] = ("keyboard", "scripted")
+ON_FAULT: tuple[str, ...] = ("stop", "wait")
+POLL_S = 0.05  # how often a waiting operator is polled
 
 
 class OperatorQuit(SystemExit):
@@ -48,6 +53,9 @@ class OperatorConfig:
     rest_pose: list[float] | None = None
     # Control frequency; null: the fps of the dataset the policy was trained on (its train_config.json).
     fps: int | None = None
+    # After a robot fault (the episode is discarded): "stop" ends the command (rerun it to resume); "wait" lets
+    # go of the robot, waits for the operator to recover it, reconnects and repeats the attempt.
+    on_fault: str = "stop"
 
     def validate(self) -> None:
         if self.type not in OPERATORS:
@@ -58,6 +66,8 @@ class OperatorConfig:
             raise UsageError("operator.episode_time_s must be > 0 and operator.rest_time_s >= 0")
         if self.fps is not None and self.fps < 1:
             raise UsageError(f"operator.fps must be >= 1, got {self.fps}")
+        if self.on_fault not in ON_FAULT:
+            raise UsageError(f"operator.on_fault must be one of {', '.join(ON_FAULT)}, got '{self.on_fault}'")
 
 
 @dataclass(frozen=True)
@@ -69,6 +79,11 @@ class EpisodeInfo:
     attempts: int  # episodes from this state in this request
     retry: int  # how many earlier tries of this attempt were discarded
     horizon: int  # control ticks before the time limit
+
+    @property
+    def key(self) -> str:
+        """``<state>/<attempt>/<retry>``: how a script names this try."""
+        return f"{self.state}/{self.attempt}/{self.retry}"
 
     def prompt(self) -> str:
         scene = "arrange a new scene" if self.attempt == 1 and self.retry == 0 else "arrange it as before"
@@ -84,6 +99,9 @@ class Operator(Protocol):
 
     def verdict(self, episode: EpisodeInfo, observation: dict[str, Any], tick: int) -> Verdict | None:
         """Polled every control tick while the policy runs (``tick`` from 0)."""
+
+    def wait_for_recovery(self, episode: EpisodeInfo) -> None:
+        """Block until the operator has recovered the arm after a fault of ``episode`` (nothing is connected)."""
 
     def close(self) -> None: ...
 
@@ -125,6 +143,12 @@ class KeyboardOperator:
     def verdict(self, episode: EpisodeInfo, observation: dict[str, Any], tick: int) -> Verdict | None:
         return self._take(VERDICTS)  # type: ignore[return-value]
 
+    def wait_for_recovery(self, episode: EpisodeInfo) -> None:
+        self._prompted, self._pending = None, None
+        print(">>> once the arm is safe and recovered, press Enter to reconnect (q/Esc = stop)", flush=True)
+        while self._take(("ready",)) is None:
+            time.sleep(POLL_S)
+
     def close(self) -> None:
         self.listener.stop()
 
@@ -148,14 +172,14 @@ class ScriptedOperator:
             raise UsageError(f"{script}: key verdicts must be one of {', '.join(VERDICTS)}, got {bad}")
 
     def ready(self, episode: EpisodeInfo) -> bool:
-        gate = self.gates.get(f"{episode.state}/{episode.attempt}/{episode.retry}")
+        gate = self.gates.get(episode.key)
         if gate is not None and not Path(gate).exists():
             return False
         print(f">>> {episode.prompt()} (scripted)", flush=True)
         return True
 
     def verdict(self, episode: EpisodeInfo, observation: dict[str, Any], tick: int) -> Verdict | None:
-        key = self.keys.get(f"{episode.state}/{episode.attempt}/{episode.retry}")
+        key = self.keys.get(episode.key)
         if key is not None and key[0] == tick:
             return key[1]  # type: ignore[return-value]
         if tick < episode.horizon - 1:
@@ -165,6 +189,14 @@ class ScriptedOperator:
             return None
         close = all(abs(float(observation[k]) - v) <= self.tolerance for k, v in target.items())
         return "success" if close else None
+
+    def wait_for_recovery(self, episode: EpisodeInfo) -> None:
+        gate = self.gates.get(f"recover/{episode.key}")
+        if gate is None:
+            raise OperatorQuit(f"error: the operator script has no 'recover/{episode.key}' gate; rerun to resume")
+        while not Path(gate).exists():
+            time.sleep(POLL_S)
+        print(">>> recovered (scripted)", flush=True)
 
     def close(self) -> None:
         pass

@@ -8,8 +8,10 @@ One episode (:meth:`RobotBackend.run`): the arm moves smoothly to the rest pose;
 scene (with a teleoperator the arm follows it meanwhile, then returns to the rest pose); the policy runs at
 the world's fps, one action of its 8-action chunk per control tick, until the operator's verdict or the time
 limit (a failure). A discarded episode is repeated. A fault of the robot (e-stop, driver or firmware fault,
-stale feedback, a camera that fails) discards the episode in flight and ends the command with one line
-(:class:`ArmFault`): nothing more is sent to the arm.
+stale feedback, a camera that fails) discards the episode in flight, and nothing more is sent to the arm: the
+command ends with one line (:class:`ArmFault`), or with ``--operator.on_fault=wait`` the robot is disconnected,
+the operator recovers it, and it is connected again (its own ``connect``, as a rerun would) before the
+attempt is repeated. A robot that does not connect ends the command with one line too.
 
 **Durability.** Every finished episode is written to ``<output_dir>/robot_journal`` (an
 :class:`~lerobot_cso.durable.EpisodeJournal`, one ``.npz`` per episode with the controller's record) the moment
@@ -20,6 +22,7 @@ state and attempt that come next, with nothing lost or duplicated.
 
 from __future__ import annotations
 
+import logging
 import re
 import time
 from collections.abc import Iterator, Sequence
@@ -36,7 +39,7 @@ from lerobot.utils.robot_utils import precise_sleep
 
 from lerobot_cso.durable import EpisodeJournal, read_json
 from lerobot_cso.errors import UsageError
-from lerobot_cso.rollout.backend import Controller, Job, Trace
+from lerobot_cso.rollout.backend import ActiveSkill, Controller, Job, Trace
 from lerobot_cso.rollout.operator import EpisodeInfo, Operator, make_operator
 
 if TYPE_CHECKING:
@@ -45,12 +48,20 @@ if TYPE_CHECKING:
 
     from lerobot_cso.rollout_stage import RolloutStageConfig
 
+log = logging.getLogger(__name__)
+
 JOURNAL_DIR = "robot_journal"
 EVAL_STATES = 1000  # evaluation trials per run are numbered 0 .. N-1 (the paper: 20)
 
 
 class ArmFault(SystemExit):
-    """The robot failed during an episode; the command ends with this one-line message (exit code 1)."""
+    """The robot did not connect or failed during an episode; the command ends with this one-line message
+    (exit code 1)."""
+
+
+def _reason(exc: BaseException) -> str:
+    """``exc`` as one line: its type and message."""
+    return f"{type(exc).__name__}: {exc}".replace("\n", " ")
 
 
 def state_keys(robot: Robot) -> list[str]:
@@ -65,7 +76,12 @@ def camera_shapes(robot: Robot) -> dict[str, tuple[int, ...]]:
 
 def check_policy_fits(robot_config: RobotConfig, policy: PreTrainedConfig) -> None:
     """Raise ``UsageError`` unless the policy reads exactly what the robot observes and commands what it takes."""
-    robot = make_robot_from_config(robot_config)  # builds the object only: nothing is connected
+    quiet = logging.root.manager.disable
+    logging.disable(logging.WARNING)  # what a robot logs when built is logged again by the one that connects
+    try:
+        robot = make_robot_from_config(robot_config)  # builds the object only: nothing is connected
+    finally:
+        logging.disable(quiet)
     name = robot_config.type
     inputs, outputs = policy.input_features, policy.output_features
     states, actions, cameras = state_keys(robot), list(robot.action_features), camera_shapes(robot)
@@ -160,15 +176,21 @@ class RobotBackend:
         spec["fps"] = fps
         self.journal = EpisodeJournal(settings.output_dir / JOURNAL_DIR, spec, what="a robot rollout journal")
         self.operator: Operator = make_operator(settings.operator)
+        self.robot_config = settings.robot
         self.robot: Robot = make_robot_from_config(settings.robot)
         self.teleop: Teleoperator | None = None
         self.state_keys, self.action_keys = state_keys(self.robot), list(self.robot.action_features)
+        device = f"robot {settings.robot.type}"
         try:
             self.robot.connect()
             measured = self.robot.get_observation()
             if settings.teleop is not None:
+                device = f"teleoperator {settings.teleop.type}"
                 self.teleop = make_teleoperator_from_config(settings.teleop)
                 self.teleop.connect()
+        except Exception as exc:  # not on the bus, a camera that does not open, ...: one line, not a traceback
+            self.close()
+            raise ArmFault(f"error: {device} did not connect: {_reason(exc)}") from exc
         except BaseException:
             self.close()
             raise
@@ -239,13 +261,16 @@ class RobotBackend:
             except (KeyboardInterrupt, SystemExit):
                 raise
             except Exception as exc:  # e-stop, driver or firmware fault, stale feedback, a camera: never silent
-                reason = f"{type(exc).__name__}: {exc}".replace("\n", " ")
+                reason = _reason(exc)
                 self._discard(job, attempt, reason)
-                raise ArmFault(
-                    f"error: robot fault in state {job.init_seed}, attempt {attempt}: {reason}. The episode was "
-                    f"discarded and nothing more was sent to the arm; recover it (PiPER: piper-recover, or "
-                    f"--robot.recovery=reset), then rerun the same command to resume there"
-                ) from exc
+                if self.timing.on_fault == "stop":
+                    raise ArmFault(
+                        f"error: robot fault in state {job.init_seed}, attempt {attempt}: {reason}. The episode was "
+                        f"discarded and nothing more was sent to the arm; recover it (PiPER: piper-recover, or "
+                        f"--robot.recovery=reset), then rerun the same command to resume there"
+                    ) from exc
+                self._reconnect(info, reason)
+                continue
             if trace is not None:
                 break
             self._discard(job, attempt, "operator")
@@ -257,6 +282,36 @@ class RobotBackend:
         verdict = "success" if trace.success else "failure"
         print(f"state {job.init_seed}, attempt {attempt}: {verdict} after {trace.length} steps", flush=True)
         return trace
+
+    def _reconnect(self, info: EpisodeInfo, fault: str) -> None:
+        """``--operator.on_fault=wait``: let go of the robot, wait for the operator, connect it again as a rerun
+        would (its own ``connect``: for the PiPER the enable handshake with ``--robot.recovery``), until it does."""
+        self._let_go()
+        print(
+            f"robot fault in state {info.state}, attempt {info.attempt}: {fault}. The episode was discarded and the "
+            "robot disconnected; recover the arm (PiPER: release the e-stop, piper-recover)",
+            flush=True,
+        )
+        while True:
+            self.operator.wait_for_recovery(info)
+            self.robot = make_robot_from_config(self.robot_config)
+            try:
+                self.robot.connect()
+                self._observe()
+            except Exception as exc:  # still faulted: nothing was commanded
+                self._let_go()
+                print(f"the robot did not reconnect: {_reason(exc)}; recover it and confirm again", flush=True)
+                continue
+            print(f"reconnected; state {info.state}, attempt {info.attempt} again", flush=True)
+            return
+
+    def _let_go(self) -> None:
+        """Disconnect the robot (its own disconnect policy) if it is still connected; a failure is only logged."""
+        try:
+            if self.robot.is_connected:
+                self.robot.disconnect()
+        except Exception as exc:
+            log.warning("%s did not disconnect cleanly: %s", self.robot_config.type, _reason(exc))
 
     # ------------------------------------------------------------------ one episode on the robot
     def _observe(self) -> tuple[dict[str, Any], np.ndarray]:
@@ -285,10 +340,9 @@ class RobotBackend:
         while True:
             started = time.perf_counter()
             obs, _ = self._observe()
-            if self.teleop is not None:
-                self.robot.send_action(self.teleop.get_action())
+            sent = None if self.teleop is None else self.robot.send_action(self.teleop.get_action())
             if self.display:
-                self._show(obs, None, None, None)
+                self._show(obs, sent, None)
             if self.operator.ready(info):
                 break
             self._tick(started)
@@ -303,7 +357,7 @@ class RobotBackend:
         states, actions = [], []
         images: dict[str, list[np.ndarray]] = {cam: [] for cam in self.cameras}
         chunk = np.zeros((0, len(self.action_keys)), dtype=np.float32)
-        verdict, decisions = None, 0
+        verdict = None
         for tick in range(self.horizon):
             started = time.perf_counter()
             obs, state = self._observe()
@@ -313,14 +367,13 @@ class RobotBackend:
                     batch["pixels"] = {cam: np.asarray(obs[cam])[None] for cam in self.cameras}
                 chunk = np.asarray(controller.act(batch, np.ones(1, dtype=bool)), dtype=np.float32)
                 chunk = chunk.reshape(-1, chunk.shape[-1])
-                decisions += 1
             sent = self._send(chunk[0])
             states.append(state)
             actions.append(np.array([sent[k] for k in self.action_keys], dtype=np.float32))
             for cam in self.cameras:
                 images[cam].append(np.asarray(obs[cam], dtype=np.uint8))
             if self.display:
-                self._show(obs, chunk[0], decisions - 1, controller)
+                self._show(obs, sent, controller.current_skill(0))
             chunk = chunk[1:]
             verdict = self.operator.verdict(info, obs, tick)
             if verdict is not None:
@@ -339,17 +392,15 @@ class RobotBackend:
             record=controller.finish(0),
         )
 
-    def _show(self, obs: dict[str, Any], command: np.ndarray | None, skill: int | None, controller: Any) -> None:
-        """``--display_data``: cameras and measured joints, the commanded action, the current skill."""
+    def _show(self, obs: dict[str, Any], sent: dict[str, Any] | None, skill: ActiveSkill | None) -> None:
+        """``--display_data``: the cameras and measured joints, the action sent, the skill being executed."""
         from lerobot.utils.visualization_utils import log_visualization_data
 
         observation = dict(obs)
         if skill is not None:
-            observation["skill.index"] = float(skill)
-            decisions = getattr(controller, "decisions", None)  # the engine's controller records its skills
-            if decisions and decisions[0]:
-                observation["skill.tokens"] = np.asarray(decisions[0][-1][2], dtype=np.float64)
-        action = None if command is None else dict(zip(self.action_keys, map(float, command), strict=True))
+            observation["skill.index"] = float(skill.index)
+            observation["skill.tokens"] = np.asarray(skill.tokens, dtype=np.float64)
+        action = None if sent is None else {k: float(sent[k]) for k in self.action_keys}
         log_visualization_data("rerun", observation=observation, action=action)
 
     def close(self) -> None:
