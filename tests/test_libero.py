@@ -149,6 +149,9 @@ class _Replay:
     def finish(self, slot: int) -> None:
         return None
 
+    def current_skill(self, slot: int) -> None:
+        return None  # replays actions, chooses no skills
+
 
 def test_decision_only_rendering_gives_the_same_decision_frames(env):
     actions = np.random.default_rng(0).uniform(-1, 1, (16, 7)).astype(np.float32)
