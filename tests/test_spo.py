@@ -132,6 +132,49 @@ def test_resume_continues_after_the_last_finished_iteration(rsft_policy, tmp_pat
     assert (tmp_path / "pretrained_model" / "model.safetensors").is_file()
 
 
+def calls(engine: ScriptedEngine) -> list[list[tuple[str, int]]]:
+    return [[(s.task, s.seed) for s in call] for call in engine.calls]
+
+
+def test_a_state_pool_cycles_and_skips_states_whose_group_was_uniform(rsft_policy, tmp_path):
+    """Pool of 2 states per task: positions 0..3 = (reach, S), (button, S), (reach, S+1), (button, S+1).
+    Seed S fails in every sample (uniform), S+1 is mixed; skip_uniform_for=1 keeps S out of iteration 1."""
+    cfg = make_cfg(rsft_policy, tmp_path, state_pool=2, skip_uniform_for=1, max_draw_factor=2)
+    r, b = TASKS
+    engine, skip = ScriptedEngine(mixed), {}
+    groups, stats, cursor = spo.collect_groups(cfg, list(TASKS), engine, 0, 0, iteration=0, skip_until=skip)
+    assert calls(engine) == [[(r, S), (b, S)], [(r, S + 1), (b, S + 1)]]
+    assert [(g[0].task, g[0].init_seed) for g in groups] == [(r, S + 1), (b, S + 1)]
+    assert skip == {"0": 2, "1": 2} and cursor == 4 and stats["rejection_rate"] == 0.5
+    engine.calls.clear()
+    groups, stats, cursor = spo.collect_groups(cfg, list(TASKS), engine, cursor, 0, iteration=1, skip_until=skip)
+    assert calls(engine) == [[(r, S + 1), (b, S + 1)]] and stats["rejection_rate"] == 0.0  # S skipped
+    assert cursor == 8
+    engine.calls.clear()
+    spo.collect_groups(cfg, list(TASKS), engine, cursor, 0, iteration=2, skip_until=skip)
+    assert calls(engine) == [[(r, S), (b, S)], [(r, S + 1), (b, S + 1)]]  # S is back, and skipped again
+    assert skip == {"0": 4, "1": 4}
+
+
+def test_an_exhausted_pool_ends_the_collection(rsft_policy, tmp_path):
+    cfg = make_cfg(rsft_policy, tmp_path, state_pool=1, skip_uniform_for=3)  # only seed S: uniform
+    engine = ScriptedEngine(mixed)
+    groups, stats, _ = spo.collect_groups(cfg, list(TASKS), engine, 0, 0, iteration=0, skip_until={})
+    assert groups == [] and len(engine.calls) == 1 and stats["rejection_rate"] == 1.0
+
+
+def test_resume_keeps_the_pools_skip_memory(rsft_policy, tmp_path):
+    pool = dict(state_pool=2, skip_uniform_for=1, iterations=2)
+    whole: list[ScriptedEngine] = []
+    spo.run_spo(make_cfg(rsft_policy, tmp_path / "whole", **pool), make_engine=engine_factory(whole))
+    parts: list[ScriptedEngine] = []
+    first = make_cfg(rsft_policy, tmp_path / "parts", **pool | {"iterations": 1})
+    spo.run_spo(first, make_engine=engine_factory(parts))
+    spo.run_spo(make_cfg(rsft_policy, tmp_path / "parts", **pool), make_engine=engine_factory(parts))
+    assert [c for e in parts for c in calls(e)] == calls(whole[0])
+    assert calls(whole[0])[-1] == [(TASKS[0], S + 1), (TASKS[1], S + 1)]  # iteration 2 skipped seed S
+
+
 def test_bad_objective_is_a_clear_error(rsft_policy, tmp_path):
     from lerobot_cso.errors import UsageError
 

@@ -3,8 +3,10 @@
 Each of ``iterations`` (M) iterations: π_old ← π; collect ``groups_per_iteration`` (B) groups of
 ``group_size`` (K) rollouts, each group from one initial state of the SPO part of the training seed range;
 compute group-relative advantages (Eq. 8; leave-one-out for ``ript``); drop groups whose rewards are all equal
-and draw new states (dynamic rejection); then ``epochs`` (N) epochs of minibatch updates of the **skill prior
-only** with the clipped objective of :mod:`lerobot_cso.cso.objectives` at the chosen granularity.
+and draw new states (dynamic rejection; optionally from a fixed pool of states that skips, for a while, the
+states whose group was uniform: ``state_pool``, ``skip_uniform_for``); then ``epochs`` (N) epochs of minibatch
+updates of the **skill prior only** with the clipped objective of :mod:`lerobot_cso.cso.objectives` at the
+chosen granularity.
 
 The observation encoders stay frozen: the encoder context of each decision is cached during the rollout
 and the optimizer holds the prior's parameters alone, so the encoders are bit-identical before and after.
@@ -13,7 +15,7 @@ updated policy's (dropout off), so the first minibatch has ratio exactly 1. Rati
 sampling temperature over all codes (``ratio_top_k: null``, as RIPT), not the top-k-truncated one, so a token
 that leaves the top-k keeps a finite ratio.
 
-Every iteration is checkpointed atomically (policy, processors, optimizer, seed cursor, history); a rerun
+Every iteration is checkpointed atomically (policy, processors, optimizer, seed cursor, skip memory, history); a rerun
 continues after the last finished iteration. Logged per iteration: SR of the collected groups, rejection
 rate, clip fraction (and its low / high sides), mean ratio, approximate KL, loss, grad norm, number of
 updates (``target_kl`` can end an iteration's epochs early), episodes, env steps, wall time — console table,
@@ -107,6 +109,12 @@ class SPOConfig(RolloutStageConfig):
     target_kl: float | None = None
     # Give up on an iteration's collection after drawing this many times B groups (all rejected).
     max_draw_factor: int = 4
+    # Draw from a fixed pool of this many training states per task, cycling (as RIPT draws from its demos'
+    # initial states); null: a fresh training state at every draw (the paper's "a new initial state is sampled").
+    state_pool: int | None = None
+    # With a pool: a state whose group was uniform (all successes or all failures) is not drawn again until
+    # this many further iterations have passed (RIPT's rollout-stats skipping, applied to both outcomes).
+    skip_uniform_for: int = 0
     seed: int = 0
     wandb: WandBConfig = field(default_factory=WandBConfig)
 
@@ -119,6 +127,10 @@ class SPOConfig(RolloutStageConfig):
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.group_size < 2:
             raise UsageError(f"group_size must be >= 2 for group-relative advantages, got {self.group_size}")
+        if self.state_pool is not None and self.state_pool < 1:
+            raise UsageError(f"state_pool must be >= 1 or null, got {self.state_pool}")
+        if self.skip_uniform_for < 0:
+            raise UsageError(f"skip_uniform_for must be >= 0, got {self.skip_uniform_for}")
         if self.target_kl is not None and self.target_kl <= 0:
             raise UsageError(f"target_kl must be > 0 or null, got {self.target_kl}")
         low, high = self.clip()
@@ -169,32 +181,75 @@ def padded_logprobs(
     return out
 
 
-def collect_groups(
-    cfg: SPOConfig, tasks: list[str], engine: RolloutEngine, cursor: int, round_seed: int
-) -> tuple[list[list[Episode]], dict[str, float], int]:
-    """Draw groups of K until B are accepted (dynamic rejection); returns groups, stats, new seed cursor."""
+def draw_states(
+    cfg: SPOConfig, tasks: list[str], cursor: int, n: int, skip_until: dict[str, int], iteration: int
+) -> tuple[list[int], list[InitialState], int]:
+    """The next ``n`` draw positions, their initial states and the new cursor.
+
+    Position ``p`` is task ``tasks[p % T]``. Without a pool it names that task's ``p``-th SPO training state
+    (every draw is fresh); with ``state_pool`` P, positions cycle over ``P·T`` and name the task's
+    ``(p // T)``-th state, skipping those with ``skip_until[p] > iteration``, at most one pass per call (so
+    fewer than ``n`` when the pool is exhausted).
+    """
     world = cfg.world()
+    if cfg.state_pool is None:
+        positions = list(range(cursor, cursor + n))
+        cursor += n
+    else:
+        size = cfg.state_pool * len(tasks)
+        positions = []
+        for _ in range(size):
+            if len(positions) == n:
+                break
+            position, cursor = cursor % size, cursor + 1
+            if skip_until.get(str(position), 0) <= iteration:
+                positions.append(position)
+    per_task = 1 if cfg.state_pool is None else len(tasks)  # pool positions cycle over the tasks' states
+    states = []
+    for p in positions:
+        task = tasks[p % len(tasks)]
+        states.append(InitialState(task, world.training_states(task, "spo", p // per_task, 1)[0]))
+    return positions, states, cursor
+
+
+def collect_groups(
+    cfg: SPOConfig,
+    tasks: list[str],
+    engine: RolloutEngine,
+    cursor: int,
+    round_seed: int,
+    iteration: int = 0,
+    skip_until: dict[str, int] | None = None,
+) -> tuple[list[list[Episode]], dict[str, float], int]:
+    """Draw groups of K until B are accepted (dynamic rejection); returns groups, stats, new seed cursor.
+
+    With a state pool, ``skip_until`` (updated in place) holds, per draw position, the first iteration at
+    which a state whose group was uniform may be drawn again.
+    """
+    skip_until = {} if skip_until is None else skip_until
     accepted: list[list[Episode]] = []
     outcomes: list[float] = []
     drawn = env_steps = 0
     while len(accepted) < cfg.groups_per_iteration and drawn < cfg.max_draw_factor * cfg.groups_per_iteration:
         n = cfg.groups_per_iteration - len(accepted)
-        states = [
-            InitialState(task, world.training_states(task, "spo", cursor + i, 1)[0])
-            for i, task in ((i, tasks[(cursor + i) % len(tasks)]) for i in range(n))
-        ]
-        cursor += n
+        positions, states, cursor = draw_states(cfg, tasks, cursor, n, skip_until, iteration)
+        if not states:
+            break  # every state of the pool is being skipped
         result = engine.rollout(states, k=cfg.group_size, sampling=cfg.sampling, seed=round_seed + drawn)
         groups = result.groups()
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
         keep = reject_uniform_groups(rewards)
         accepted += [g for g, k in zip(groups, keep.tolist(), strict=True) if k]
+        if cfg.state_pool is not None:
+            for position, k in zip(positions, keep.tolist(), strict=True):
+                if not k:
+                    skip_until[str(position)] = iteration + 1 + cfg.skip_uniform_for
         outcomes += rewards.reshape(-1).tolist()
         drawn += len(groups)
         env_steps += sum(e.length for e in result.episodes)
     stats = {
-        "success_rate": float(np.mean(outcomes)),
-        "rejection_rate": 1 - len(accepted) / drawn,
+        "success_rate": float(np.mean(outcomes)) if outcomes else 0.0,
+        "rejection_rate": 1 - len(accepted) / drawn if drawn else 0.0,
         "episodes": len(outcomes),
         "env_steps": env_steps,
     }
@@ -287,7 +342,7 @@ def run_spo(
     state = ResumableState(cfg.output_dir / "state")
     saved = state.progress()
     resume = saved is not None
-    progress = saved or {"iteration": 0, "cursor": 0, "history": []}
+    progress = saved or {"iteration": 0, "cursor": 0, "history": [], "skip_until": {}}
     if progress["iteration"] >= cfg.iterations:
         print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
         final_missing = not (cfg.output_dir / "pretrained_model" / "config.json").is_file()
@@ -317,14 +372,14 @@ def run_spo(
             resume="allow",
             id=cfg.wandb.run_id,
         )
-    history, cursor = progress["history"], progress["cursor"]
+    history, cursor, skip_until = progress["history"], progress["cursor"], progress.get("skip_until", {})
     if main:
         print(" | ".join(LOG_COLUMNS))
     with distributed.ShardedRollouts(make_engine(policy, pre, post, cfg)) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
             round_seed = seeds.round_seed(cfg.seed, iteration * 10_007)
-            groups, stats, cursor = collect_groups(cfg, tasks, engine, cursor, round_seed)
+            groups, stats, cursor = collect_groups(cfg, tasks, engine, cursor, round_seed, iteration, skip_until)
             generator.manual_seed(round_seed)
             if groups:
                 stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
@@ -341,7 +396,8 @@ def run_spo(
                     save_checkpoint(directory / "pretrained_model", policy, pre, post)
                     torch.save(optimizer.state_dict(), directory / "optimizer.pt")
 
-                state.save({"iteration": iteration + 1, "cursor": cursor, "history": history}, write)
+                progress = {"iteration": iteration + 1, "cursor": cursor, "history": history, "skip_until": skip_until}
+                state.save(progress, write)
                 write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
                 plot_history(history, cfg.output_dir / "spo.png")
             distributed.wait_for_everyone()
