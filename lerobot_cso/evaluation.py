@@ -25,7 +25,6 @@ from lerobot.configs import parser
 
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout_stage import RolloutStageConfig
-from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 
 
 @dataclass
@@ -199,7 +198,7 @@ class EvalStage:
         self.name, self.cfg = f"eval_{label}", cfg
 
     def spec(self) -> dict[str, Any]:
-        return {"eval": settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
+        return {"eval": self.cfg.stage_spec()}
 
     def output(self) -> Path:
         return self.cfg.output_dir

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import lerobot.scripts.lerobot_record  # noqa: F401  (registers LeRobot's robots, teleoperators and cameras)
 from lerobot.robots.config import RobotConfig
@@ -26,6 +26,9 @@ from lerobot_cso.rollout.engine import Sampling
 from lerobot_cso.rollout.operator import OperatorConfig
 from lerobot_cso.rollout.pool import VECTORIZATIONS
 from lerobot_cso.rollout.world import World, world_for
+from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
+
+ROBOT_FIELDS = ("robot", "teleop", "operator")  # settings of robot rollouts only
 
 
 @dataclass
@@ -62,6 +65,12 @@ class RolloutStageConfig(PolicyPathConfig):
 
             return RobotWorld(self)
         return world_for(self.tasks)
+
+    def stage_spec(self) -> dict[str, Any]:
+        """The settings the stage's output depends on: not the pipeline's fields nor ``display_data``, and the
+        robot's settings only when it runs on a robot."""
+        robot = () if self.robot is not None else ROBOT_FIELDS
+        return settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", *robot))
 
     def horizon(self) -> int:
         """The episode cap of the rollouts: ``max_steps``, or the world's horizon."""

@@ -49,7 +49,7 @@ class CheckpointStage:
         self.cfg, self.make_engine = cfg, make_engine
 
     def spec(self) -> dict[str, Any]:
-        return {self.name: settings_spec(self.cfg, exclude=PIPELINE_FIELDS)}
+        return {self.name: self.cfg.stage_spec()}
 
     def output(self) -> Path:
         return self.cfg.output_dir

@@ -115,3 +115,16 @@ def test_top_level_seed_reaches_every_training_stage(tiny_config):
     assert (seeded.demos.seed, seeded.il.seed, seeded.rsft.seed, seeded.spo.seed) == (3, 1003, 3, 3)
     unseeded = Pipeline(cfg).cfg
     assert (unseeded.il.seed, unseeded.spo.seed) == (cfg.il.seed, cfg.spo.seed)
+
+
+def test_robot_only_settings_do_not_change_a_simulated_stages_spec(tiny_config):
+    """Operator and display settings have no effect in simulation, so changing them must not redo a stage."""
+    from lerobot_cso.rollout.operator import OperatorConfig
+
+    with open(tiny_config) as f:
+        cfg = draccus.load(PipelineConfig, f)
+    base = Pipeline(cfg).rsft_config(None)
+    other = dataclasses.replace(base, operator=OperatorConfig(episode_time_s=5.0), display_data=True)
+    assert other.stage_spec() == base.stage_spec()
+    assert "operator" not in base.stage_spec() and "epochs" in base.stage_spec()
+    assert dataclasses.replace(base, epochs=base.epochs + 1).stage_spec() != base.stage_spec()
