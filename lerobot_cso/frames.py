@@ -38,11 +38,10 @@ class InMemoryFrames(torch.utils.data.Dataset):
         }
         timestamps = dataset.delta_timestamps
         self.delta_indices = get_delta_indices(timestamps, dataset.fps) if timestamps else {}
-        relative = dataset.absolute_to_relative_idx
         absolute = self.columns["index"].numpy()
         # Absolute frame index → row of this (possibly episode-filtered) table.
         self.row_of = np.full(int(absolute.max()) + 1, -1, dtype=np.int64)
-        self.row_of[absolute] = np.arange(len(absolute)) if relative is None else [relative[i] for i in absolute]
+        self.row_of[absolute] = np.arange(len(absolute))
         self.task_names = list(dataset.meta.tasks.index)
 
     def __len__(self) -> int:
