@@ -271,7 +271,12 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     policy.set_encoders_frozen(False)
     # Action chunks are only read by QueST's optional decoder loss (and cost LeRobot a query per frame).
     chunk = {"action": [i / cfg.world().fps for i in range(policy.config.chunk_size)]}
-    ds = LeRobotDataset(cfg.repo_id, root=buffer, delta_timestamps=chunk if policy.config.decoder_loss_scale else None)
+    ds = LeRobotDataset(
+        cfg.repo_id,
+        root=buffer,
+        delta_timestamps=chunk if policy.config.decoder_loss_scale else None,
+        video_backend="pyav",  # as the demos: skips probing torchcodec (a traceback per load where it cannot load)
+    )
     starts = np.flatnonzero(np.asarray(ds.hf_dataset[SKILL_START_KEY]).reshape(-1) == 1)
     generator = torch.Generator().manual_seed(cfg.seed)
     loader = torch.utils.data.DataLoader(
