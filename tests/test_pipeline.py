@@ -20,7 +20,8 @@ STAGES = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")
 TASKS = ("drawer-close-v3", "button-press-v3")
 
 # Two easy tasks and a tiny policy: IL solves drawer-close and sometimes button-press, so R-SFT finds
-# successes on both.
+# successes on both. The stages roll out in this process (sync), which gives the same episodes as the worker
+# processes (tests/test_sharded.py) without starting them for four envs.
 TINY = """
 tasks: {tasks}
 output_dir: {out}
@@ -35,11 +36,11 @@ il:
   log_freq: 50
   policy: {{device: cpu, ae_dim: 32, ae_heads: 2, ae_encoder_layers: 1, ae_decoder_layers: 1, prior_dim: 48,
            prior_heads: 2, prior_layers: 2, state_embed_dim: 16, optimizer_lr: 0.001, optimizer_min_lr: 0.0001}}
-eval: {{episodes_per_task: 4, num_envs: 4, max_steps: 150}}
-rsft: {{successes_per_task: 2, n_strikes: 4, states_per_round: 1, max_states_per_task: 20, num_envs: 4, epochs: 1,
-       batch_size: 16}}
+eval: {{episodes_per_task: 4, num_envs: 4, vectorization: sync, max_steps: 150}}
+rsft: {{successes_per_task: 2, n_strikes: 4, states_per_round: 1, max_states_per_task: 20, num_envs: 4,
+       vectorization: sync, epochs: 1, batch_size: 16}}
 spo: {{iterations: 1, groups_per_iteration: 2, group_size: 4, epochs: 1, minibatch_trajectories: 4, num_envs: 4,
-      max_draw_factor: 4}}
+      vectorization: sync, max_draw_factor: 4}}
 """
 
 
