@@ -3,7 +3,8 @@
 Per training seed ``s`` (IL seed, R-SFT seed and SPO seed all derive from it): the pipeline of
 ``--config`` (demos → IL → eval → R-SFT → eval → SPO → eval) gives ``il``, ``rsft`` and ``cso``; SPO from the IL
 checkpoint gives ``spo_only``; SPO with ``--objective=token|trajectory|ript`` from the same R-SFT checkpoint,
-with the same SPO settings (iterations, groups, K, draws), gives ``token``, ``trajectory``, ``ript``. Every
+with the same SPO settings (iterations, groups, K, draws, lr) and each objective's own default clip range
+(a clip range in the config is the skill objective's), gives ``token``, ``trajectory``, ``ript``. Every
 evaluation is the config's ``eval`` section (held-out evaluation seed range). Env steps and episodes of every
 SPO run are counted and printed.
 
@@ -109,6 +110,8 @@ def run_seed(cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any]
         spo_cfg = dataclasses.replace(
             pipeline.spo_config(policy_config(checkpoints[source])),
             objective=objective,
+            clip_low=cfg.spo.clip_low if objective == "skill" else None,
+            clip_high=cfg.spo.clip_high if objective == "skill" else None,
             output_dir=cfg.output_dir / method,
         )
         history = run_spo(spo_cfg)
