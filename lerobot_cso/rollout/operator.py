@@ -22,6 +22,7 @@ fault, when the arm is recovered and may be connected again (:meth:`Operator.wai
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,6 +118,7 @@ class KeyboardOperator:
         from lerobot.utils.keyboard_input import create_key_listener
 
         self._pending: str | None = None
+        self._lock = threading.Lock()  # the listener thread writes _pending while the control loop takes it
         self._prompted: EpisodeInfo | None = None
         self.listener = create_key_listener(self._on_key, controls_help=self.HELP)
         if self.listener is None:
@@ -126,17 +128,24 @@ class KeyboardOperator:
             )
 
     def _on_key(self, name: str) -> None:
-        self._pending = self.KEYS.get(name.lower(), self._pending)
+        with self._lock:
+            self._pending = self.KEYS.get(name.lower(), self._pending)
+
+    def _clear(self) -> None:
+        with self._lock:
+            self._pending = None
 
     def _take(self, wanted: tuple[str, ...]) -> str | None:
-        key, self._pending = self._pending, None
+        with self._lock:
+            key, self._pending = self._pending, None
         if key == "quit":
             raise OperatorQuit("stopped by the operator; rerun the same command to resume")
         return key if key in wanted else None
 
     def ready(self, episode: EpisodeInfo) -> bool:
         if self._prompted != episode:
-            self._prompted, self._pending = episode, None
+            self._prompted = episode
+            self._clear()
             print(f"\n>>> {episode.prompt()}; then press Enter ({self.HELP})", flush=True)
         return self._take(("ready",)) is not None
 
@@ -144,7 +153,8 @@ class KeyboardOperator:
         return self._take(VERDICTS)  # type: ignore[return-value]
 
     def wait_for_recovery(self, episode: EpisodeInfo) -> None:
-        self._prompted, self._pending = None, None
+        self._prompted = None
+        self._clear()
         print(">>> once the arm is safe and recovered, press Enter to reconnect (q/Esc = stop)", flush=True)
         while self._take(("ready",)) is None:
             time.sleep(POLL_S)
