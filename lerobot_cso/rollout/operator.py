@@ -9,7 +9,8 @@ fault, when the arm is recovered and may be connected again (:meth:`Operator.wai
 * :class:`KeyboardOperator` (``--operator.type=keyboard``): LeRobot's key listener (the one ``lerobot-record``
   uses: pynput on a desktop, the terminal otherwise). Enter / space / n / right arrow: the scene is arranged,
   start (after a fault: the arm is recovered, reconnect); s: success; f: failure; d: discard; q / Esc: stop
-  (the episode in flight is discarded, a rerun resumes at it).
+  (the episode in flight is discarded, a rerun resumes at it). A verdict key pressed after the start key, while
+  the arm returns to rest from a teleop reset, is kept and ends the episode at its first tick.
 * :class:`ScriptedOperator` (``--operator.type=scripted --operator.script=FILE.json``): a stand-in for tests
   and dry runs. Arranging takes no time; key presses come from the script, keyed by
   ``"<state>/<attempt>/<retry>"`` (attempt from 1, retry = how many times this attempt was discarded before)
