@@ -231,7 +231,7 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
         dims = first["states"].shape[-1], first["actions"].shape[-1]
     features = buffer_features(*dims, n_tokens, image_shapes)
     ds = LeRobotDataset.create(
-        cfg.repo_id, world.fps, features, root=work, robot_type=world.robot_type, use_videos=False
+        cfg.repo_id, world.fps, features, root=work, robot_type=world.robot_type, use_videos=False, video_backend="pyav"
     )
     for path in tqdm(files, desc="writing R-SFT buffer", leave=False):
         task = path.parent.name
