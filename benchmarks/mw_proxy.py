@@ -101,7 +101,7 @@ def run_seed(cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any]
     checkpoints = {name: Path(p) for name, p in out["checkpoints"].items()}
     history = [json.loads(line) for line in (cfg.output_dir / "spo" / "log.jsonl").read_text().splitlines()]
     record_spo(results, "cso", key, history)
-    results["seconds"][key] = {"pipeline": time.perf_counter() - started}
+    results["seconds"].setdefault(key, {})["pipeline"] = time.perf_counter() - started  # keeps earlier runs
     save(path, results)
     for method, (source, objective) in SPO_RUNS.items():
         if key in results["methods"][method]["per_seed"]:
