@@ -11,10 +11,12 @@ from torch import Tensor
 
 
 class BackgroundDecode:
-    """Runs ``decode(batch)`` under ``torch.inference_mode`` in a daemon thread; ``result()`` waits for it.
+    """Runs ``decode(batch)`` under ``torch.inference_mode`` in a thread; ``result()`` waits for it.
 
     Torch kernels release the GIL, so the caller's thread runs on while the decode computes; an exception in
-    the decode is re-raised by ``result()``.
+    the decode is re-raised by ``result()``. The thread is not a daemon: a process that exits while a decode
+    runs waits for it (one skill, well under a second) instead of tearing torch down under it, which aborts
+    the process ("terminate called without an active exception").
     """
 
     def __init__(self, decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any]) -> None:
@@ -22,7 +24,7 @@ class BackgroundDecode:
         self._batch = batch
         self._value: Tensor | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="cso-decode", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="cso-decode")
         self._thread.start()
 
     def _run(self) -> None:
