@@ -50,18 +50,8 @@ def il_policy(tmp_path_factory) -> Path:
 
 
 def make_cfg(il_policy: Path, out: Path, **kw) -> rsft.RSFTConfig:
-    cfg = rsft.RSFTConfig(
-        tasks=",".join(TASKS),
-        output_dir=out,
-        successes_per_task=3,
-        n_strikes=4,
-        states_per_round=2,
-        epochs=10,
-        batch_size=8,
-        lr=1e-3,
-        min_lr=1e-4,
-        **kw,
-    )
+    settings = dict(successes_per_task=3, n_strikes=4, states_per_round=2, epochs=10, batch_size=8, lr=1e-3)
+    cfg = rsft.RSFTConfig(tasks=",".join(TASKS), output_dir=out, min_lr=1e-4, **(settings | kw))
     cfg.policy = load_policy(il_policy)[0].config
     cfg.policy.pretrained_path = il_policy
     return cfg
@@ -89,6 +79,23 @@ def test_n_strikes_keeps_successes_and_switches_states(collected):
         [("reach-v3", S), ("reach-v3", S + 1), ("button-press-v3", S), ("button-press-v3", S + 1)],
         [("reach-v3", S + 2), ("reach-v3", S + 3), ("button-press-v3", S + 2), ("button-press-v3", S + 3)],
     ]
+
+
+@pytest.mark.parametrize(
+    ("cap", "expected"),
+    [
+        (None, {"reach-v3": ["1000001_001", "1000001_003"], "button-press-v3": ["1000000_002", "1000002_000"]}),
+        (1, {"reach-v3": ["1000001_001", "1000002_000"], "button-press-v3": ["1000000_002", "1000002_000"]}),
+    ],
+)
+def test_a_cap_per_state_spreads_the_successes_over_more_states(il_policy, tmp_path, cap, expected):
+    # Two successes per task: uncapped, reach's S + 1 gives both; capped at one, the second comes from S + 2
+    # (round 2 tries S + 2 and S + 3: 0 + 2 + 4 + 1 successes seen).
+    cfg = make_cfg(il_policy, tmp_path / "out", successes_per_task=2, max_successes_per_state=cap)
+    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
+    rsft.collect(cfg, list(TASKS), ScriptedEngine(outcome), journal)
+    assert kept_files(journal) == expected
+    assert rsft.collection_report(journal, list(TASKS))["reach-v3"]["successes"] == (2 if cap is None else 7)
 
 
 def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy, tmp_path):

@@ -2,8 +2,9 @@
 
 **Collection.** Per task, initial states are drawn in order from the R-SFT part of the training seed range.
 From each state the IL policy runs ``n_strikes`` attempts (one group, batched) with exploratory sampling
-(temperature / top-k above evaluation's); every success is kept until the task has ``successes_per_task``;
-a state where all attempts fail is struck out and the next state is drawn.
+(temperature / top-k above evaluation's); every success (or, with ``max_successes_per_state``, the first few
+of a state) is kept until the task has ``successes_per_task``; a state where all attempts fail is struck out
+and the next state is drawn.
 
 **Durability.** ``<output_dir>/journal`` (a :class:`~lerobot_cso.durable.EpisodeJournal`) is the source of
 truth: each kept success is written atomically as ``episodes/<task>/<seed>_<attempt>.npz`` the moment its
@@ -66,6 +67,10 @@ class RSFTConfig(RolloutStageConfig):
     # Collection (Algorithm 1, App. E.2 / G).
     successes_per_task: int = 200
     n_strikes: int = 10
+    # At most this many of a state's successes are kept (None: all of them, the paper's App. E.2 rule). A cap
+    # spreads the buffer over more states, so states the policy solves only sometimes weigh as much as the
+    # states it always solves.
+    max_successes_per_state: int | None = None
     states_per_round: int = 2  # new initial states per unfinished task per batched rollout call
     max_states_per_task: int = 2000
     seed: int = 0
@@ -84,6 +89,8 @@ class RSFTConfig(RolloutStageConfig):
         for name in ("successes_per_task", "n_strikes", "states_per_round", "max_states_per_task", "batch_size"):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_successes_per_state is not None and self.max_successes_per_state < 1:
+            raise UsageError(f"max_successes_per_state must be >= 1, got {self.max_successes_per_state}")
         if self.epochs < 0:
             raise UsageError(f"epochs must be >= 0, got {self.epochs}")
         if not 0 < self.min_lr <= self.lr:
@@ -94,7 +101,7 @@ class RSFTConfig(RolloutStageConfig):
 
     def spec(self) -> dict[str, Any]:
         """Settings that define the buffer; a journal made with other settings is refused."""
-        keys = ("tasks", "successes_per_task", "n_strikes", "seed")
+        keys = ("tasks", "successes_per_task", "n_strikes", "max_successes_per_state", "seed")
         return {k: getattr(self, k) for k in keys} | {
             "sampling": asdict(self.sampling),
             "policy": str(self.policy.pretrained_path),
@@ -177,11 +184,13 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
             fresh = [s for s in world.training_states(task, "rsft", 0, cfg.max_states_per_task) if s not in tried]
             requests += [InitialState(task, s) for s in fresh[: cfg.states_per_round]]
         round_seed = seeds.round_seed(cfg.seed, requests[0].seed)
-        needed = dict(kept)
+        needed, per_state = dict(kept), dict.fromkeys(requests, 0)
 
-        def keep(episode: Episode, needed: dict[str, int] = needed) -> None:
-            if episode.success and needed[episode.task] < cfg.successes_per_task:
+        def keep(episode: Episode, needed: dict[str, int] = needed, per_state: dict = per_state) -> None:
+            state, cap = InitialState(episode.task, episode.init_seed), cfg.max_successes_per_state or cfg.n_strikes
+            if episode.success and needed[episode.task] < cfg.successes_per_task and per_state[state] < cap:
                 needed[episode.task] += 1
+                per_state[state] += 1
                 journal.save_episode(episode, sampling)
                 progress.update(1)
 

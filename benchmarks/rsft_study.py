@@ -1,0 +1,132 @@
+"""R-SFT settings from one IL checkpoint, compared on training-range states (never the evaluation range).
+
+Runs ``lerobot-cso rsft`` once per variant (the demo config's R-SFT settings plus the variant's flags) from
+``--il_path``, then rolls out every resulting policy, and the IL policy itself, from the same ``--states``
+initial states per task taken from the far end of the SPO training range (those SPO's pool and R-SFT's
+collection never reach), ``--k`` times each at evaluation's sampling (T 1, top-5). Prints one table: the
+collection (rollouts, states kept from, successes per kept state) and the success rate per task and mean,
+± one binomial standard error. Finished variants are skipped on a rerun; ``--json`` saves the table.
+
+    python benchmarks/rsft_study.py --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
+        --output_dir=outputs/rsft_study --variants=shipped,cap2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.envs import seeds
+from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+from lerobot_cso.rollout.pool import EnvPool
+
+TASKS = "reach-v3,button-press-v3,drawer-close-v3"
+# configs/metaworld_demo.yaml's rsft section.
+DEMO_FLAGS = [
+    "--successes_per_task=100",
+    "--n_strikes=10",
+    "--max_states_per_task=400",
+    "--num_envs=48",
+    "--epochs=10",
+    "--batch_size=64",
+    "--lr=0.0001",
+    "--min_lr=0.00001",
+    "--max_steps=200",
+]
+VARIANTS = {
+    "shipped": [],
+    "cap1": ["--max_successes_per_state=1"],
+    "cap2": ["--max_successes_per_state=2"],
+    "cap2_e20": ["--max_successes_per_state=2", "--epochs=20"],
+    "t1_top5": ["--sampling.temperature=1.0", "--sampling.top_k=5"],
+    "lr3e-4": ["--lr=0.0003", "--min_lr=0.00003"],
+    "e3": ["--epochs=3"],
+}
+
+
+def run_rsft(il_path: Path, out: Path, flags: list[str], seed: int) -> float:
+    """``lerobot-cso rsft`` for one variant (skipped when its checkpoint exists); seconds taken."""
+    if (out / "pretrained_model" / "config.json").is_file():
+        return float("nan")
+    start = time.perf_counter()
+    cmd = [Path(sys.executable).parent / "lerobot-cso", "rsft", f"--policy.path={il_path}", f"--tasks={TASKS}"]
+    cmd += [f"--output_dir={out}", f"--seed={seed}", *DEMO_FLAGS, *flags]
+    subprocess.run([str(c) for c in cmd], check=True)
+    return time.perf_counter() - start
+
+
+def success_rates(policy_path: Path, tasks: list[str], n_states: int, k: int, num_envs: int) -> dict[str, list[int]]:
+    """Successes per initial state (0 … k) of each task, from the last ``n_states`` SPO training states."""
+    policy, pre, post = load_policy(policy_path)
+    first = len(seeds.TRAIN) // 2 - n_states
+    states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, n_states)]
+    with RolloutEngine(policy, pre, post, EnvPool(num_envs, max_steps=200), task_description) as engine:
+        result = engine.rollout(states, k=k, sampling=Sampling(), seed=11, progress=str(policy_path.parent.name))
+    return {t: [sum(e.success for e in g) for g in result.groups() if g[0].task == t] for t in tasks}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--il_path", type=Path, required=True)
+    parser.add_argument("--output_dir", type=Path, default=Path("outputs/rsft_study"))
+    parser.add_argument("--variants", default="shipped,cap2")
+    parser.add_argument("--states", type=int, default=100)
+    parser.add_argument("--k", type=int, default=2)
+    parser.add_argument("--num_envs", type=int, default=48)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    names = args.variants.split(",")
+    if unknown := [n for n in names if n not in VARIANTS]:
+        parser.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
+    torch.set_num_threads(1)
+    tasks = resolve_tasks(TASKS)
+    rows = {}
+    results_file = args.output_dir / "study.json"
+    if results_file.is_file():
+        rows = json.loads(results_file.read_text())
+    for name in ["il", *names]:
+        if name in rows:
+            continue
+        path, row = args.il_path, {"flags": []}
+        if name != "il":
+            out = args.output_dir / name
+            row = {"flags": VARIANTS[name], "rsft_seconds": run_rsft(args.il_path, out, VARIANTS[name], args.seed)}
+            row["collection"] = json.loads((out / "collection.json").read_text())
+            files = {t: list((out / "journal" / "episodes" / t).glob("*.npz")) for t in tasks}
+            kept = {t: len(files[t]) for t in tasks}
+            states = {t: len({p.stem.split("_")[0] for p in files[t]}) for t in tasks}
+            row["kept_states"] = states
+            row["successes_per_kept_state"] = {t: kept[t] / max(states[t], 1) for t in tasks}
+            path = out / "pretrained_model"
+        row["successes"] = success_rates(path, tasks, args.states, args.k, args.num_envs)
+        rows[name] = row
+        args.output_dir.mkdir(parents=True, exist_ok=True)
+        results_file.write_text(json.dumps(rows, indent=2))
+    n = args.states * args.k
+    print(f"\nSuccess rate (%) over {args.states} training-range states × {args.k} per task (± 1 s.e.)")
+    print("| variant | " + " | ".join(tasks) + " | mean | kept states | successes per kept state |")
+    print("|---|" + "---:|" * (len(tasks) + 3))
+    for name, row in rows.items():
+        p = np.array([sum(row["successes"][t]) / n for t in tasks])
+        se = np.sqrt((p * (1 - p) / n).sum()) / len(tasks)
+        cells = [f"{100 * x:.1f}" for x in p]
+        kept = "/".join(str(row.get("kept_states", {}).get(t, "–")) for t in tasks)
+        per = "/".join(f"{row['successes_per_kept_state'][t]:.1f}" for t in tasks) if "kept_states" in row else "–"
+        print(f"| {name} | " + " | ".join(cells) + f" | {100 * p.mean():.1f} ± {100 * se:.1f} | {kept} | {per} |")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
