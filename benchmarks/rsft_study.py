@@ -53,10 +53,10 @@ VARIANTS = {
 }
 
 
-def run_rsft(il_path: Path, out: Path, flags: list[str], seed: int) -> float:
-    """``lerobot-cso rsft`` for one variant (skipped when its checkpoint exists); seconds taken."""
+def run_rsft(il_path: Path, out: Path, flags: list[str], seed: int) -> float | None:
+    """``lerobot-cso rsft`` for one variant (skipped when its checkpoint exists: None); seconds taken."""
     if (out / "pretrained_model" / "config.json").is_file():
-        return float("nan")
+        return None
     start = time.perf_counter()
     cmd = [Path(sys.executable).parent / "lerobot-cso", "rsft", f"--policy.path={il_path}", f"--tasks={TASKS}"]
     cmd += [f"--output_dir={out}", f"--seed={seed}", *DEMO_FLAGS, *flags]
