@@ -33,6 +33,7 @@ from lerobot_cso.cso.spo import run_spo
 from lerobot_cso.durable import write_atomic
 from lerobot_cso.evaluation import evaluate
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
+from lerobot_cso.stage import settings_spec
 
 METHODS = ("il", "rsft", "spo_only", "cso", "token", "trajectory", "ript")
 SPO_RUNS = {
@@ -44,10 +45,18 @@ SPO_RUNS = {
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 
-def load(path: Path, command: str) -> dict[str, Any]:
+def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
+    """The results so far; a file made with another config is refused, so runs of two configs never mix."""
     if path.is_file():
-        return json.loads(path.read_text())
+        results = json.loads(path.read_text())
+        if results.get("config") != config:
+            raise SystemExit(
+                f"error: {path} holds results of another config (its 'config' differs from --config's); "
+                "move it aside or pass another --results"
+            )
+        return results
     return {
+        "config": config,
         "methods": {m: {"per_seed": {}} for m in METHODS},
         "env_steps": {},
         "episodes": {},
@@ -186,7 +195,7 @@ def main() -> int:
     command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
     with open(args.config) as f:
         cfg = draccus.load(PipelineConfig, f)
-    results = load(args.results, command)
+    results = load(args.results, command, settings_spec(cfg, exclude=("output_dir", "seed")))
     started = time.perf_counter()
     for seed in (int(s) for s in args.seeds.split(",")):
         run_seed(cfg, seed, args.work, results, args.results)
