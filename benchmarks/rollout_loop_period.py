@@ -4,9 +4,7 @@ Saves an untrained full-size policy (prior 6×384, autoencoder 256) with the PiP
 ``piper-emulator`` on a private udp_multicast channel, runs ``lerobot-rollout --strategy.type=base`` against it
 once per variant (synchronous decode, and the background decode started ``--lead`` ticks before the queue runs
 dry), and measures the loop period from the kernel receive times of the joint commands on the bus. Run:
-    ./run.sh python benchmarks/rollout_loop_period.py [--duration 60] [--lead 3] [--nice 0] [--weights float32]
-
-Run it with ``OMP_NUM_THREADS=1`` to give lerobot-rollout's torch one intra-op thread (docs/benchmarks.md).
+    ./run.sh python benchmarks/rollout_loop_period.py [--duration 60] [--lead 3] [--weights float32]
 """
 
 from __future__ import annotations
@@ -32,7 +30,7 @@ TASK = "hold still"
 BINS_MS = (0, 30, 32, 33, 34, 35, 36.7, 40, 50, 70, 100, 1000, float("inf"))
 
 
-def save_full_size_policy(path: Path, lead: int, weights: str, nice: int) -> Path:
+def save_full_size_policy(path: Path, lead: int, weights: str) -> Path:
     """Default-size untrained cso policy for the PiPER (state and action 7-D), saved with processors."""
     torch.manual_seed(0)
     config = CSOConfig(
@@ -41,7 +39,6 @@ def save_full_size_policy(path: Path, lead: int, weights: str, nice: int) -> Pat
         n_autoencoder_steps=0,
         tasks=[TASK],
         async_decode_lead=lead,
-        async_decode_nice=nice,
         inference_weights=weights,
         input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
@@ -107,7 +104,6 @@ def main() -> None:
     parser.add_argument("--fps", type=int, default=30)
     parser.add_argument("--lead", type=int, default=3)
     parser.add_argument("--weights", default="float32")
-    parser.add_argument("--nice", type=int, default=0, help="async_decode_nice of the background decode")
     args = parser.parse_args()
     limit_ms = 1.1 * 1000 / args.fps
     print(f"# command: python {shlex.join(sys.argv)}")
@@ -115,9 +111,8 @@ def main() -> None:
         print(f"# load average before: {f.read().strip()}")
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        variants = (("synchronous decode", 0), (f"background decode, lead {args.lead}, nice {args.nice}", args.lead))
-        for name, lead in variants:
-            checkpoint = save_full_size_policy(home / f"policy_lead{lead}", lead, args.weights, args.nice)
+        for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
+            checkpoint = save_full_size_policy(home / f"policy_lead{lead}", lead, args.weights)
             report(f"{name} ({args.weights})", loop_periods_ms(checkpoint, home, args.duration, args.fps), limit_ms)
             with open("/proc/loadavg") as f:
                 print(f"# load average after: {f.read().strip()}")

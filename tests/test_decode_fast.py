@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import threading
-
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
-from lerobot_cso.policy.background_decode import BackgroundDecode
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 
 N_CONTEXTS = 1000
@@ -100,15 +96,3 @@ def test_reset_waits_for_and_drops_a_pending_decode():
         assert policy._next_chunk is not None
         policy.reset()
     assert policy._next_chunk is None and not policy._action_queue
-
-
-def test_background_decode_runs_at_the_configured_lower_priority():
-    def own_priority(_batch) -> torch.Tensor:
-        return torch.tensor(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
-
-    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    assert int(BackgroundDecode(own_priority, {}, nice=5).result()) == min(base + 5, 19)
-    assert int(BackgroundDecode(own_priority, {}).result()) == base
-    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == base  # the caller's thread is untouched
-    with pytest.raises(ValueError, match="async_decode_nice"):
-        full_size_policy(async_decode_nice=20)

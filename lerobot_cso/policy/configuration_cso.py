@@ -104,11 +104,9 @@ class CSOConfig(PreTrainedConfig):
     # the prior's weights during decoding ("float32": the same numbers as training; "int8": weight-only int8,
     # faster at batch 1 but not equivalent, see docs/benchmarks.md), and how many queued actions may remain
     # when the next skill's decode starts in a background thread from that tick's observation (0: decode
-    # synchronously when the queue is empty, the policy's standard behaviour), and how much lower than the
-    # control loop's that background decode's scheduling priority is (Linux niceness added to its thread).
+    # synchronously when the queue is empty, the policy's standard behaviour).
     inference_weights: str = "float32"
     async_decode_lead: int = 0
-    async_decode_nice: int = 0
 
     # Training.
     n_autoencoder_steps: int = 1000
@@ -139,8 +137,6 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:
             raise ValueError(f"async_decode_lead must be in [0, n_action_steps={self.n_action_steps})")
-        if not 0 <= self.async_decode_nice <= 19:
-            raise ValueError(f"async_decode_nice must be in [0, 19], got {self.async_decode_nice}")
 
     @property
     def downsample_factor(self) -> int:

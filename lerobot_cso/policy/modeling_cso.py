@@ -229,7 +229,7 @@ class CSOPolicy(PreTrainedPolicy):
         action = self._action_queue.popleft()
         lead = self.config.async_decode_lead
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
-            self._next_chunk = BackgroundDecode(self._executed_chunk, batch, self.config.async_decode_nice)
+            self._next_chunk = BackgroundDecode(self._executed_chunk, batch)
         return action
 
     @property
