@@ -44,7 +44,7 @@ from lerobot_cso.durable import EpisodeJournal
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.operator import EpisodeInfo, KeyboardOperator, OperatorConfig, OperatorQuit, make_operator
-from lerobot_cso.rollout.robot import RobotBackend
+from lerobot_cso.rollout.robot import ArmFault, RobotBackend
 
 HELP = KeyboardOperator.HELP
 QUIT = "stopped by the operator; rerun the same command to resume"
@@ -332,7 +332,7 @@ class Bench:
 
 @pytest.fixture
 def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBackend, Bench]]]:
-    """``bench(teleop, script, rest_time_s, horizon)`` -> a ``RobotBackend`` on the simulated arm(s), its
+    """``bench(teleop, script, rest_time_s, horizon, on_fault)`` -> a ``RobotBackend`` on the simulated arm(s), its
     operator the real ``KeyboardOperator`` played by a ``Person``, the robot and teleoperator recorded."""
     clock = SimulatedClock()
     monkeypatch.setattr(robot_module, "make_robot_from_config", lambda config: PiperFollower(config, clock))
@@ -348,7 +348,9 @@ def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBack
     clock.every(follower.firmware.config.period_s, follower.step)
     state = Bench(clock, follower, None, buses, Timeline(follower.firmware))
 
-    def make(teleop: bool, script: dict, rest_time_s: float, horizon: int) -> tuple[RobotBackend, Bench]:
+    def make(
+        teleop: bool, script: dict, rest_time_s: float, horizon: int, on_fault: str = "stop"
+    ) -> tuple[RobotBackend, Bench]:
         if teleop and state.leader is None:
             buses.append(can.Bus(interface="virtual", channel=leader_channel))
             state.leader = PiperEmulator(buses[-1], EmulatorConfig(role="leader"), clock)  # the default sines
@@ -360,7 +362,9 @@ def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBack
             teleop=PiperLeaderConfig(interface="virtual", channel=leader_channel, calibration_dir=tmp_path)
             if teleop
             else None,
-            operator=OperatorConfig(type="keyboard", fps=FPS, rest_time_s=rest_time_s, rest_pose=list(REST)),
+            operator=OperatorConfig(
+                type="keyboard", fps=FPS, rest_time_s=rest_time_s, rest_pose=list(REST), on_fault=on_fault
+            ),
             display_data=False,
             tasks=TASK,
             policy=SimpleNamespace(pretrained_path=tmp_path / "policy"),
@@ -516,3 +520,66 @@ def test_teleop_reset_the_arm_follows_the_leader_then_returns_to_rest_before_the
     for e in log.of("send", "policy"):
         np.testing.assert_allclose(e.sent, POLICY, atol=1e-6)
     np.testing.assert_allclose(state.follower.firmware.targets_rad, POLICY[:6], atol=1e-4)
+
+
+def test_a_leader_that_goes_silent_while_arranging_ends_the_command_and_nothing_more_reaches_the_arm(bench):
+    """The leader's firmware stops talking one second into arranging: its link trips, the episode in flight is
+    discarded with the reason, the command ends with one line naming the teleoperator, the policy never
+    starts, and the follower receives no command after the last pose read from the leader."""
+    script = {"0/1/0": (10 * FPS, "enter", None, None)}  # Enter would come only after 10 s
+    backend, state = bench(teleop=True, script=script, rest_time_s=0.3, horizon=30)
+    person_ready = backend.operator.ready
+
+    def ready(info: EpisodeInfo) -> bool:
+        if backend.operator.polls.get(info.key, 0) == FPS:
+            state.leader.firmware.silent = True
+            state.log.note("silent")
+        return person_ready(info)
+
+    backend.operator.ready = ready
+    fault = "^error: teleoperator fault in state 0, attempt 1: TeleopFault: PiperLeader: FeedbackStaleError"
+    with pytest.raises(ArmFault, match=fault):
+        list(backend.run([Job(TASK, 0)], FakePolicy(state.log)))
+    received = len(received_joint_commands(state.follower.firmware))
+    state.clock.sleep(1.0)  # the arms run on; nothing more is sent
+    assert len(received_joint_commands(state.follower.firmware)) == received
+    kinds = [e.kind for e in state.log.events]
+    silent = kinds.index("silent")
+    assert "start" not in kinds and "act" not in kinds
+    # After the leader fell silent: two more ticks read its last pose and send it; the third read, 100 ms on
+    # (its link's watchdog limit), trips, and nothing is sent.
+    after = kinds[silent + 1 :]
+    assert after == ["poll"] + ["leader", "send", "poll"] * 2
+    assert received == after.count("send") + kinds[:silent].count("send")  # every send reached the arm
+    out_dir = state.made[0].journal.root.parent
+    assert journaled(out_dir) == {}
+    [record] = [json.loads(p.read_text()) for p in (out_dir / "robot_journal" / "records").glob("*/*.json")]
+    [reason] = record["discarded"]
+    assert reason.startswith("TeleopFault: PiperLeader: FeedbackStaleError"), reason
+
+
+def test_with_on_fault_wait_a_silent_leader_is_reconnected_and_the_attempt_repeated(bench, capsys):
+    """``--operator.on_fault=wait``: the same fault disconnects both devices; once the operator confirms (the
+    leader talks again), both are connected anew and the attempt is repeated as its second try, to a verdict."""
+    script = {"0/1/0": (10 * FPS, "enter", None, None), "0/1/1": (2, "enter", 1, "s")}
+    backend, state = bench(teleop=True, script=script, rest_time_s=0.3, horizon=30, on_fault="wait")
+    person, first_leader = backend.operator, backend.teleop
+
+    def ready(info: EpisodeInfo) -> bool:
+        if info.key == "0/1/0" and person.polls.get(info.key, 0) == FPS:
+            state.leader.firmware.silent = True
+        return Person.ready(person, info)
+
+    def wait_for_recovery(info: EpisodeInfo) -> None:
+        assert not backend.robot.is_connected and not first_leader.is_connected  # both let go
+        state.leader.firmware.silent = False  # the operator fixed the leader's cable
+        state.clock.sleep(0.1)
+
+    person.ready, person.wait_for_recovery = ready, wait_for_recovery
+    [(_, trace)] = list(backend.run([Job(TASK, 0)], FakePolicy(state.log)))
+    assert trace.success and trace.length == 2
+    assert backend.teleop is not first_leader and backend.teleop.is_connected
+    out = capsys.readouterr().out
+    assert "teleoperator fault in state 0, attempt 1: TeleopFault: PiperLeader: FeedbackStaleError" in out
+    assert "reconnected; state 0, attempt 1 again" in out
+    assert person.polls == {"0/1/0": FPS + 3, "0/1/1": 3}  # the first try: as in the test above

@@ -8,10 +8,11 @@ One episode (:meth:`RobotBackend.run`): the arm moves smoothly to the rest pose;
 scene (with a teleoperator the arm follows it meanwhile, then returns to the rest pose); the policy runs at
 the world's fps, one action of its 8-action chunk per control tick, until the operator's verdict or the time
 limit (a failure). A discarded episode is repeated. A fault of the robot (e-stop, driver or firmware fault,
-stale feedback, a camera that fails) discards the episode in flight, and nothing more is sent to the arm: the
-command ends with one line (:class:`ArmFault`), or with ``--operator.on_fault=wait`` the robot is disconnected,
-the operator recovers it, and it is connected again (its own ``connect``, as a rerun would) before the
-attempt is repeated. A robot that does not connect ends the command with one line too.
+stale feedback, a camera that fails) or of the teleoperator while it drives the arm discards the episode in
+flight, and nothing more is sent to the arm: the command ends with one line naming the device
+(:class:`ArmFault`), or with ``--operator.on_fault=wait`` both devices are disconnected, the operator recovers
+the faulted one, and both are connected again (their own ``connect``, as a rerun would) before the attempt is
+repeated. A robot or teleoperator that does not connect ends the command with one line too.
 
 **Durability.** Every finished episode is written to ``<output_dir>/robot_journal`` (an
 :class:`~lerobot_cso.durable.EpisodeJournal`, one ``.npz`` per episode with the controller's record) the moment
@@ -57,6 +58,10 @@ EVAL_STATES = 1000  # evaluation trials per run are numbered 0 .. N-1 (the paper
 class ArmFault(SystemExit):
     """The robot did not connect or failed during an episode; the command ends with this one-line message
     (exit code 1)."""
+
+
+class TeleopFault(RuntimeError):
+    """The teleoperator failed while the arm followed it (the scene-arranging phase)."""
 
 
 def _reason(exc: BaseException) -> str:
@@ -176,7 +181,7 @@ class RobotBackend:
         spec["fps"] = fps
         self.journal = EpisodeJournal(settings.output_dir / JOURNAL_DIR, spec, what="a robot rollout journal")
         self.operator: Operator = make_operator(settings.operator)
-        self.robot_config = settings.robot
+        self.robot_config, self.teleop_config = settings.robot, settings.teleop
         self.robot: Robot = make_robot_from_config(settings.robot)
         self.teleop: Teleoperator | None = None
         self.state_keys, self.action_keys = state_keys(self.robot), list(self.robot.action_features)
@@ -261,15 +266,16 @@ class RobotBackend:
             except (KeyboardInterrupt, SystemExit):
                 raise
             except Exception as exc:  # e-stop, driver or firmware fault, stale feedback, a camera: never silent
-                reason = _reason(exc)
+                reason, device = _reason(exc), "teleoperator" if isinstance(exc, TeleopFault) else "robot"
                 self._discard(job, attempt, reason)
                 if self.timing.on_fault == "stop":
+                    hint = "" if device == "teleoperator" else " (PiPER: piper-recover, or --robot.recovery=reset)"
                     raise ArmFault(
-                        f"error: robot fault in state {job.init_seed}, attempt {attempt}: {reason}. The episode was "
-                        f"discarded and nothing more was sent to the arm; recover it (PiPER: piper-recover, or "
-                        f"--robot.recovery=reset), then rerun the same command to resume there"
+                        f"error: {device} fault in state {job.init_seed}, attempt {attempt}: {reason}. The episode was "
+                        f"discarded and nothing more was sent to the arm; recover the {device}{hint}, then rerun "
+                        f"the same command to resume there"
                     ) from exc
-                self._reconnect(info, reason)
+                self._reconnect(info, reason, device)
                 continue
             if trace is not None:
                 break
@@ -283,13 +289,15 @@ class RobotBackend:
         print(f"state {job.init_seed}, attempt {attempt}: {verdict} after {trace.length} steps", flush=True)
         return trace
 
-    def _reconnect(self, info: EpisodeInfo, fault: str) -> None:
-        """``--operator.on_fault=wait``: let go of the robot, wait for the operator, connect it again as a rerun
-        would (its own ``connect``: for the PiPER the enable handshake with ``--robot.recovery``), until it does."""
+    def _reconnect(self, info: EpisodeInfo, fault: str, device: str) -> None:
+        """``--operator.on_fault=wait``: let go of the devices, wait for the operator, connect them again as a
+        rerun would (their own ``connect``: for the PiPER the enable handshake with ``--robot.recovery``), until
+        they do."""
         self._let_go()
+        hint = "" if device == "teleoperator" else " (PiPER: release the e-stop, piper-recover)"
         print(
-            f"robot fault in state {info.state}, attempt {info.attempt}: {fault}. The episode was discarded and the "
-            "robot disconnected; recover the arm (PiPER: release the e-stop, piper-recover)",
+            f"{device} fault in state {info.state}, attempt {info.attempt}: {fault}. The episode was discarded and "
+            f"the devices disconnected; recover the {device}{hint}",
             flush=True,
         )
         while True:
@@ -298,20 +306,25 @@ class RobotBackend:
             try:
                 self.robot.connect()
                 self._observe()
+                if self.teleop_config is not None:
+                    self.teleop = make_teleoperator_from_config(self.teleop_config)
+                    self.teleop.connect()
             except Exception as exc:  # still faulted: nothing was commanded
                 self._let_go()
-                print(f"the robot did not reconnect: {_reason(exc)}; recover it and confirm again", flush=True)
+                print(f"the devices did not reconnect: {_reason(exc)}; recover them and confirm again", flush=True)
                 continue
             print(f"reconnected; state {info.state}, attempt {info.attempt} again", flush=True)
             return
 
     def _let_go(self) -> None:
-        """Disconnect the robot (its own disconnect policy) if it is still connected; a failure is only logged."""
-        try:
-            if self.robot.is_connected:
-                self.robot.disconnect()
-        except Exception as exc:
-            log.warning("%s did not disconnect cleanly: %s", self.robot_config.type, _reason(exc))
+        """Disconnect the teleoperator and the robot (its own disconnect policy) where still connected; a failure
+        is only logged."""
+        for device in (self.teleop, self.robot):
+            try:
+                if device is not None and device.is_connected:
+                    device.disconnect()
+            except Exception as exc:
+                log.warning("%s did not disconnect cleanly: %s", type(device).__name__, _reason(exc))
 
     # ------------------------------------------------------------------ one episode on the robot
     def _observe(self) -> tuple[dict[str, Any], np.ndarray]:
@@ -335,12 +348,20 @@ class RobotBackend:
             self._tick(started)
         self._observe()  # raises if the move ended in a fault
 
+    def _teleop_action(self) -> dict[str, float]:
+        """The teleoperator's action; any failure of it is a :class:`TeleopFault`."""
+        assert self.teleop is not None
+        try:
+            return self.teleop.get_action()
+        except Exception as exc:
+            raise TeleopFault(f"{type(self.teleop).__name__}: {_reason(exc)}") from exc
+
     def _arrange(self, info: EpisodeInfo) -> None:
         """Wait for the operator; with a teleoperator the arm follows it meanwhile, then returns to rest."""
         while True:
             started = time.perf_counter()
             obs, _ = self._observe()
-            sent = None if self.teleop is None else self.robot.send_action(self.teleop.get_action())
+            sent = None if self.teleop is None else self.robot.send_action(self._teleop_action())
             if self.display:
                 self._show(obs, sent, None)
             if self.operator.ready(info):
