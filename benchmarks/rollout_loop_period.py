@@ -2,12 +2,9 @@
 
 Saves an untrained full-size policy (prior 6×384, autoencoder 256) with the PiPER's 7-D state and action, starts
 ``piper-emulator`` on a private udp_multicast channel, runs ``lerobot-rollout --strategy.type=base`` against it
-once per variant (synchronous decode; the background decode started ``--lead`` ticks before the queue runs
-dry, in a thread or in the decode process), and measures the loop period from the kernel receive times of the
-joint commands on the bus, after the first ``--skip_s`` seconds (connection, the first decode, the decode
-process starting). Run:
-    OMP_NUM_THREADS=1 ./run.sh python benchmarks/rollout_loop_period.py [--duration 60] [--lead 3] \
-        [--variants sync,thread,process] [--skip_s 5] [--weights float32]
+once per variant (synchronous decode, and the background decode started ``--lead`` ticks before the queue runs
+dry), and measures the loop period from the kernel receive times of the joint commands on the bus. Run:
+    ./run.sh python benchmarks/rollout_loop_period.py [--duration 60] [--lead 3] [--weights float32]
 """
 
 from __future__ import annotations
@@ -33,7 +30,7 @@ TASK = "hold still"
 BINS_MS = (0, 30, 32, 33, 34, 35, 36.7, 40, 50, 70, 100, 1000, float("inf"))
 
 
-def save_full_size_policy(path: Path, lead: int, worker: str, weights: str) -> Path:
+def save_full_size_policy(path: Path, lead: int, weights: str) -> Path:
     """Default-size untrained cso policy for the PiPER (state and action 7-D), saved with processors."""
     torch.manual_seed(0)
     config = CSOConfig(
@@ -42,7 +39,6 @@ def save_full_size_policy(path: Path, lead: int, worker: str, weights: str) -> P
         n_autoencoder_steps=0,
         tasks=[TASK],
         async_decode_lead=lead,
-        async_decode_worker=worker,
         inference_weights=weights,
         input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
@@ -59,7 +55,7 @@ def save_full_size_policy(path: Path, lead: int, worker: str, weights: str) -> P
     return path
 
 
-def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int, skip_s: float) -> np.ndarray:
+def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int) -> np.ndarray:
     """Run lerobot-rollout against a fresh emulator; periods between consecutive joint commands (ms)."""
     follower = start_emulator(*unique_udp_channel())
     recorder = ChannelRecorder(follower.group, follower.port)
@@ -87,7 +83,7 @@ def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int, ski
     if out.returncode != 0:
         raise RuntimeError(explain(out))
     times = np.array([c.time_s for c in recorder.commands.joints])
-    times = times[times >= times[0] + skip_s]
+    times = times[times >= times[0] + 1.0]  # the first second: connection and the first decode
     return np.diff(times) * 1000
 
 
@@ -108,8 +104,6 @@ def main() -> None:
     parser.add_argument("--fps", type=int, default=30)
     parser.add_argument("--lead", type=int, default=3)
     parser.add_argument("--weights", default="float32")
-    parser.add_argument("--variants", default="sync,thread,process")
-    parser.add_argument("--skip_s", type=float, default=5.0)
     args = parser.parse_args()
     limit_ms = 1.1 * 1000 / args.fps
     print(f"# command: python {shlex.join(sys.argv)}")
@@ -117,12 +111,9 @@ def main() -> None:
         print(f"# load average before: {f.read().strip()}")
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        for variant in args.variants.split(","):
-            lead, worker = (0, "thread") if variant == "sync" else (args.lead, variant)
-            name = "synchronous decode" if variant == "sync" else f"background decode in a {worker}, lead {lead}"
-            checkpoint = save_full_size_policy(home / f"policy_{variant}", lead, worker, args.weights)
-            periods = loop_periods_ms(checkpoint, home, args.duration, args.fps, args.skip_s)
-            report(f"{name} ({args.weights})", periods, limit_ms)
+        for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
+            checkpoint = save_full_size_policy(home / f"policy_lead{lead}", lead, args.weights)
+            report(f"{name} ({args.weights})", loop_periods_ms(checkpoint, home, args.duration, args.fps), limit_ms)
             with open("/proc/loadavg") as f:
                 print(f"# load average after: {f.read().strip()}")
 

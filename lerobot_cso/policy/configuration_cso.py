@@ -12,7 +12,6 @@ from lerobot.optim.schedulers import LRSchedulerConfig
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
-from lerobot_cso.policy.background_decode import DECODE_WORKERS
 from lerobot_cso.policy.fast_prior import WEIGHT_FORMATS
 
 SKILL_TOKENS_KEY = "observation.skill_tokens"
@@ -105,12 +104,9 @@ class CSOConfig(PreTrainedConfig):
     # the prior's weights during decoding ("float32": the same numbers as training; "int8": weight-only int8,
     # faster at batch 1 but not equivalent, see docs/benchmarks.md), and how many queued actions may remain
     # when the next skill's decode starts in a background thread from that tick's observation (0: decode
-    # synchronously when the queue is empty, the policy's standard behaviour), and where that decode runs:
-    # "thread" (the policy's process) or "process" (a spawned process with a copy of the weights, CPU only: its
-    # Python does not hold up the control loop's; until it has started, a thread decodes).
+    # synchronously when the queue is empty, the policy's standard behaviour).
     inference_weights: str = "float32"
     async_decode_lead: int = 0
-    async_decode_worker: str = "thread"
 
     # Training.
     n_autoencoder_steps: int = 1000
@@ -141,8 +137,6 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:
             raise ValueError(f"async_decode_lead must be in [0, n_action_steps={self.n_action_steps})")
-        if self.async_decode_worker not in DECODE_WORKERS:
-            raise ValueError(f"async_decode_worker must be one of {DECODE_WORKERS}, got {self.async_decode_worker!r}")
 
     @property
     def downsample_factor(self) -> int:

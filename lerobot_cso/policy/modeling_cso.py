@@ -12,7 +12,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from lerobot_cso.policy.background_decode import BackgroundDecode, DecodeProcess, PendingDecode
+from lerobot_cso.policy.background_decode import BackgroundDecode
 from lerobot_cso.policy.configuration_cso import (
     SKILL_COLUMNS,
     SKILL_START_KEY,
@@ -184,22 +184,18 @@ class CSOPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
-        self._next_chunk: PendingDecode | None = getattr(self, "_next_chunk", None)
+        self._next_chunk: BackgroundDecode | None = getattr(self, "_next_chunk", None)
         if self._next_chunk is not None:  # a decode started for the previous episode is waited for, dropped
             self._next_chunk.result()
             self._next_chunk = None
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self._sampler: FastSkillSampler | None = None  # rebuilt from the current weights on next use
-        self._decode_process: DecodeProcess | None = getattr(self, "_decode_process", None)  # kept across episodes
 
     def train(self, mode: bool = True) -> CSOPolicy:
         super().train(mode)
         if self.config.freeze_encoders:  # frozen encoders keep their BatchNorm statistics too
             self.encoders.eval()
         self._sampler = None  # weights may change while training: an int8 copy would go stale
-        if mode and getattr(self, "_decode_process", None) is not None:  # nor may the decode process's copy
-            self._decode_process.close()
-            self._decode_process = None
         return self
 
     def _sample_for_inference(self, batch: dict[str, Any]) -> Tensor:
@@ -210,7 +206,7 @@ class CSOPolicy(PreTrainedPolicy):
         tokens, _ = self._sampler.sample(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
         return tokens
 
-    def executed_chunk(self, batch: dict[str, Any]) -> Tensor:
+    def _executed_chunk(self, batch: dict[str, Any]) -> Tensor:
         """Sample a skill and decode only its executed prefix (B, n_action_steps, A)."""
         return self.decode_skills(self._sample_for_inference(batch), self.config.n_action_steps)
 
@@ -228,24 +224,13 @@ class CSOPolicy(PreTrainedPolicy):
         """
         if not self._action_queue:
             pending, self._next_chunk = self._next_chunk, None
-            chunk = self.executed_chunk(batch) if pending is None else pending.result()
+            chunk = self._executed_chunk(batch) if pending is None else pending.result()
             self._action_queue.extend(chunk.transpose(0, 1))
         action = self._action_queue.popleft()
         lead = self.config.async_decode_lead
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
-            self._next_chunk = self._start_decode(batch)
+            self._next_chunk = BackgroundDecode(self._executed_chunk, batch)
         return action
-
-    def _start_decode(self, batch: dict[str, Any]) -> PendingDecode:
-        """The next skill's decode in the configured ``async_decode_worker``; a decode process still starting
-        leaves it to a thread."""
-        if self.config.async_decode_worker == "process":
-            if self._decode_process is None:
-                state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
-                self._decode_process = DecodeProcess(self.config, state)
-            if self._decode_process.ready():
-                return self._decode_process.submit(batch)
-        return BackgroundDecode(self.executed_chunk, batch)
 
     @property
     def in_autoencoder_phase(self) -> bool:
