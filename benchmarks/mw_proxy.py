@@ -45,6 +45,17 @@ SPO_RUNS = {
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 
+def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
+    """The settings the results depend on: the config without its output paths (some default to a timestamp)."""
+
+    def strip(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: strip(v) for k, v in value.items() if k != "output_dir"}
+        return value
+
+    return strip(settings_spec(cfg, exclude=("seed",)))
+
+
 def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
     """The results so far; a file made with another config is refused, so runs of two configs never mix."""
     if path.is_file():
@@ -195,7 +206,7 @@ def main() -> int:
     command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
     with open(args.config) as f:
         cfg = draccus.load(PipelineConfig, f)
-    results = load(args.results, command, settings_spec(cfg, exclude=("output_dir", "seed")))
+    results = load(args.results, command, config_spec(cfg))
     started = time.perf_counter()
     for seed in (int(s) for s in args.seeds.split(",")):
         run_seed(cfg, seed, args.work, results, args.results)
