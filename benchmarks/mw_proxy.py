@@ -14,6 +14,7 @@ again, from this clone or another; unfinished stages resume from ``--work`` (the
 
     python benchmarks/mw_proxy.py             # the demo's settings (configs/metaworld_demo.yaml), seeds 0,1,2
     python benchmarks/mw_proxy.py --seeds=0   # one seed
+    python benchmarks/mw_proxy.py --methods=il,rsft,cso   # the pipelines of every seed first
 """
 
 import argparse
@@ -107,9 +108,11 @@ def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
     )
 
 
-def run_seed(cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any], path: Path) -> None:
+def run_seed(
+    cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any], path: Path, methods: tuple[str, ...]
+) -> None:
     key = str(seed)
-    if all(key in results["methods"][m]["per_seed"] for m in METHODS):
+    if all(key in results["methods"][m]["per_seed"] for m in methods):
         print(f"[mw_proxy] seed {seed}: complete, skipped")
         return
     started = time.perf_counter()
@@ -124,7 +127,7 @@ def run_seed(cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any]
     results["seconds"].setdefault(key, {})["pipeline"] = time.perf_counter() - started  # keeps earlier runs
     save(path, results)
     for method, (source, objective) in SPO_RUNS.items():
-        if key in results["methods"][method]["per_seed"]:
+        if method not in methods or key in results["methods"][method]["per_seed"]:
             continue
         t0 = time.perf_counter()
         spo_cfg = dataclasses.replace(
@@ -200,6 +203,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--methods", default=",".join(METHODS), help="a subset runs first (il, rsft, cso always)")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
     args = parser.parse_args()
@@ -208,8 +212,11 @@ def main() -> int:
         cfg = draccus.load(PipelineConfig, f)
     results = load(args.results, command, config_spec(cfg))
     started = time.perf_counter()
+    methods = tuple(args.methods.split(","))
+    if unknown := sorted(set(methods) - set(METHODS)):
+        parser.error(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
     for seed in (int(s) for s in args.seeds.split(",")):
-        run_seed(cfg, seed, args.work, results, args.results)
+        run_seed(cfg, seed, args.work, results, args.results, methods)
     results["wall_seconds_this_run"] = time.perf_counter() - started
     save(args.results, results)
     plot(results, args.results.with_suffix(".png"))
