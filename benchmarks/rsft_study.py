@@ -1,66 +1,54 @@
 """R-SFT settings from one IL checkpoint, compared on training-range states (never the evaluation range).
 
-Runs ``lerobot-cso rsft`` once per variant (the demo config's R-SFT settings plus the variant's flags) from
-``--il_path``, then rolls out every resulting policy, and the IL policy itself, from the same ``--states``
-initial states per task taken from the far end of the SPO training range (those SPO's pool and R-SFT's
-collection never reach), ``--k`` times each at evaluation's sampling (T 1, top-5). Prints one table: the
-collection (rollouts, states kept from, successes per kept state) and the success rate per task and mean,
-± one binomial standard error. Finished variants are skipped on a rerun; ``--json`` saves the table.
+Runs R-SFT once per variant (the R-SFT section of ``--config``, the demo's by default, with the variant's
+settings replaced) from ``--il_path``, then rolls out every resulting policy, and the IL policy itself, from
+the same ``--states`` initial states per task taken from the far end of the SPO training range (those SPO's
+pool and R-SFT's collection never reach), ``--k`` times each at evaluation's sampling (T 1, top-5). Prints
+one table: the success rate per task and mean (± one binomial standard error), the states the successes were
+kept from and the successes per kept state. Finished variants are skipped on a rerun; ``--json`` saves the table.
 
     python benchmarks/rsft_study.py --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
-        --output_dir=outputs/rsft_study --variants=shipped,cap2
+        --output_dir=outputs/rsft_study --variants=keep_all,cap2
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
+import draccus
 import numpy as np
 import torch
 
 from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.cso.rsft import run_rsft
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
+from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.rollout.engine import RolloutEngine, Sampling
 from lerobot_cso.rollout.pool import EnvPool
 
-TASKS = "reach-v3,button-press-v3,drawer-close-v3"
-# configs/metaworld_demo.yaml's rsft section.
-DEMO_FLAGS = [
-    "--successes_per_task=100",
-    "--n_strikes=10",
-    "--max_states_per_task=400",
-    "--num_envs=48",
-    "--epochs=10",
-    "--batch_size=64",
-    "--lr=0.0001",
-    "--min_lr=0.00001",
-    "--max_steps=200",
-]
-VARIANTS = {
-    "shipped": [],
-    "cap1": ["--max_successes_per_state=1"],
-    "cap2": ["--max_successes_per_state=2"],
-    "cap2_e20": ["--max_successes_per_state=2", "--epochs=20"],
-    "t1_top5": ["--sampling.temperature=1.0", "--sampling.top_k=5"],
-    "lr3e-4": ["--lr=0.0003", "--min_lr=0.00003"],
-    "e3": ["--epochs=3"],
+KEEP_ALL = {"max_successes_per_state": None}  # the paper's rule
+VARIANTS: dict[str, dict[str, Any]] = {
+    "keep_all": KEEP_ALL,
+    "cap1": {"max_successes_per_state": 1},
+    "cap2": {"max_successes_per_state": 2},
+    "t1_top5": KEEP_ALL | {"sampling": Sampling(temperature=1.0, top_k=5)},
+    "e3": KEEP_ALL | {"epochs": 3},
 }
 
 
-def run_rsft(il_path: Path, out: Path, flags: list[str], seed: int) -> float | None:
-    """``lerobot-cso rsft`` for one variant (skipped when its checkpoint exists: None); seconds taken."""
+def timed_rsft(pipeline: Pipeline, il_path: Path, out: Path, settings: dict[str, Any]) -> float | None:
+    """R-SFT of one variant (skipped when its checkpoint exists: None); seconds taken."""
     if (out / "pretrained_model" / "config.json").is_file():
         return None
     start = time.perf_counter()
-    cmd = [Path(sys.executable).parent / "lerobot-cso", "rsft", f"--policy.path={il_path}", f"--tasks={TASKS}"]
-    cmd += [f"--output_dir={out}", f"--seed={seed}", *DEMO_FLAGS, *flags]
-    subprocess.run([str(c) for c in cmd], check=True)
+    run_rsft(dataclasses.replace(pipeline.rsft_config(policy_config(il_path)), output_dir=out, **settings))
     return time.perf_counter() - start
 
 
@@ -77,19 +65,21 @@ def success_rates(policy_path: Path, tasks: list[str], n_states: int, k: int, nu
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--il_path", type=Path, required=True)
+    parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/rsft_study"))
     parser.add_argument("--variants", default="shipped,cap2")
     parser.add_argument("--states", type=int, default=100)
     parser.add_argument("--k", type=int, default=2)
     parser.add_argument("--num_envs", type=int, default=48)
-    parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     names = args.variants.split(",")
     if unknown := [n for n in names if n not in VARIANTS]:
         parser.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
     torch.set_num_threads(1)
-    tasks = resolve_tasks(TASKS)
+    with open(args.config) as f:
+        pipeline = Pipeline(draccus.load(PipelineConfig, f))
+    tasks = resolve_tasks(pipeline.cfg.tasks)
     rows = {}
     results_file = args.output_dir / "study.json"
     if results_file.is_file():
@@ -97,10 +87,12 @@ def main() -> int:
     for name in ["il", *names]:
         if name in rows:
             continue
-        path, row = args.il_path, {"flags": []}
+        path, row = args.il_path, {"settings": {}}
         if name != "il":
             out = args.output_dir / name
-            row = {"flags": VARIANTS[name], "rsft_seconds": run_rsft(args.il_path, out, VARIANTS[name], args.seed)}
+            settings = VARIANTS[name]
+            row = {"settings": {k: str(v) for k, v in settings.items()}}
+            row["rsft_seconds"] = timed_rsft(pipeline, args.il_path, out, settings)
             row["collection"] = json.loads((out / "collection.json").read_text())
             files = {t: list((out / "journal" / "episodes" / t).glob("*.npz")) for t in tasks}
             kept = {t: len(files[t]) for t in tasks}
