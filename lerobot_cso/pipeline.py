@@ -134,7 +134,11 @@ class Pipeline:
         )
 
     def rsft_config(self, policy: PreTrainedConfig) -> RSFTConfig:
-        return dataclasses.replace(self.cfg.rsft, tasks=self.cfg.tasks, output_dir=self.out / "rsft", policy=policy)
+        cfg = dataclasses.replace(self.cfg.rsft, tasks=self.cfg.tasks, output_dir=self.out / "rsft", policy=policy)
+        if cfg.demo_fraction:  # the demonstrations IL trained on
+            demos = demos_stage(self.demos_config()).output()
+            cfg = dataclasses.replace(cfg, demos_root=demos, demos_repo_id=self.cfg.demos.repo_id)
+        return cfg
 
     def spo_config(self, policy: PreTrainedConfig) -> SPOConfig:
         return dataclasses.replace(self.cfg.spo, tasks=self.cfg.tasks, output_dir=self.out / "spo", policy=policy)

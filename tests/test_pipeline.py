@@ -129,3 +129,12 @@ def test_robot_only_settings_do_not_change_a_simulated_stages_spec(tiny_config):
     assert other.stage_spec() == base.stage_spec()
     assert "operator" not in base.stage_spec() and "epochs" in base.stage_spec()
     assert dataclasses.replace(base, epochs=base.epochs + 1).stage_spec() != base.stage_spec()
+
+
+def test_rsft_mixes_in_the_pipelines_own_demonstrations(tiny_config, tmp_path):
+    with open(tiny_config) as f:
+        cfg = draccus.load(PipelineConfig, f)
+    assert Pipeline(cfg).rsft_config(None).demos_root is None  # the paper's fine-tune: the buffer alone
+    mixing = dataclasses.replace(cfg, rsft=dataclasses.replace(cfg.rsft, demo_fraction=0.5))
+    rsft = Pipeline(mixing).rsft_config(None)
+    assert (rsft.demos_root, rsft.demos_repo_id) == (tmp_path / "run" / "demos", cfg.demos.repo_id)

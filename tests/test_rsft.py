@@ -3,6 +3,7 @@ Eq. 6 fine-tuning with frozen-encoder checkpoint, and pushing the buffer to a st
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import torch
 from cso_fakes import TASKS, ScriptedEngine, save_tiny_metaworld_policy
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from tiny_data import make_synthetic_dataset
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft
@@ -148,10 +150,13 @@ def test_buffer_is_a_lerobot_dataset_with_skill_tokens(buffer, collected):
     assert item[SKILL_TOKENS_KEY].dtype == torch.int64 and item[SKILL_TOKENS_KEY].shape == (8,)
 
 
-def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collected, il_policy):
+def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collected, il_policy, capsys):
     cfg, _, _ = collected
     before, pre, _ = load_policy(il_policy)
     out = rsft.finetune(cfg, buffer)
+    epochs = [line for line in capsys.readouterr().out.splitlines() if line.startswith("R-SFT epoch")]
+    nll = [float(line.split(" nll:")[1].split()[0]) for line in epochs]
+    assert len(nll) == 10 and nll[-1] < nll[0] and min(nll) > 0  # every epoch logs its own NLL
     after, _, _ = load_policy(out)
     assert after.config.freeze_encoders and not any(p.requires_grad for p in after.encoders.parameters())
     ds = LeRobotDataset(cfg.repo_id, root=buffer)
@@ -169,6 +174,40 @@ def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collect
         not torch.equal(a, b) for a, b in zip(before.encoders.parameters(), after.encoders.parameters(), strict=True)
     ]
     assert any(changed)  # the whole policy was fine-tuned before the freeze
+
+
+def test_finetune_mixes_in_demonstration_frames_with_their_autoencoder_tokens(
+    buffer, collected, il_policy, tmp_path, capsys
+):
+    cfg, _, _ = collected
+    demos = tmp_path / "demos"
+    make_synthetic_dataset(demos, state_dim=39, action_dim=4, tasks=tuple(task_description(t) for t in TASKS))
+    only_buffer = dataclasses.replace(cfg, output_dir=tmp_path / "buffer_only")
+    mixed = dataclasses.replace(
+        cfg, output_dir=tmp_path / "mixed", demo_fraction=0.5, demos_root=demos, demos_repo_id="local/synthetic"
+    )
+    before, pre, _ = load_policy(il_policy)
+    # Every demonstration frame with the IL targets: the frozen autoencoder's tokens of its 32-action chunk.
+    everything = rsft.demo_decisions(mixed, before, pre, ["observation.state", "task"], count=10_000)
+    assert len(everything) == 185  # all frames of the 4 episodes (60 + 20 + 45 + 60)
+    batch = pre(torch.utils.data.default_collate([everything[i] for i in range(len(everything))]))
+    tokens = batch[SKILL_TOKENS_KEY]
+    assert tokens.shape == (185, 8) and torch.equal(batch[SKILL_START_KEY], torch.ones(185, 1, dtype=torch.int64))
+
+    def demo_nll(policy_dir: Path) -> float:
+        policy = load_policy(policy_dir)[0].eval()
+        with torch.no_grad():
+            return -policy.token_logprobs(policy.encode_context(batch), tokens).mean().item()
+
+    demo_nll_buffer_only = demo_nll(rsft.finetune(only_buffer, buffer))
+    capsys.readouterr()
+    demo_nll_mixed = demo_nll(rsft.finetune(mixed, buffer))
+    assert "18 buffer decisions + 18 demonstration frames" in capsys.readouterr().out  # 18 × 0.5 / (1 − 0.5)
+    assert demo_nll_mixed < demo_nll_buffer_only - 1.0  # measured: 6.98 → 4.82
+    with pytest.raises(UsageError, match="is not a LeRobotDataset"):
+        rsft.finetune(dataclasses.replace(mixed, output_dir=tmp_path / "bad", demos_root=tmp_path / "nowhere"), buffer)
+    with pytest.raises(UsageError, match="--demo_fraction needs --demos_root"):
+        dataclasses.replace(mixed, demos_root=None).validate()
 
 
 class StandInHub:

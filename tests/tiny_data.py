@@ -38,6 +38,7 @@ def make_synthetic_dataset(
     image_shape: tuple[int, int, int] | None = None,
     with_action: bool = True,
     seed: int = 0,
+    tasks: tuple[str, ...] = TASKS,
 ):
     """A LeRobotDataset whose actions are a smooth function of time and task, so it can be overfit."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -61,7 +62,7 @@ def make_synthetic_dataset(
                 "observation.state": (np.full(state_dim, phase) + 0.01 * rng.standard_normal(state_dim)).astype(
                     np.float32
                 ),
-                "task": TASKS[e % 2],
+                "task": tasks[e % 2],
             }
             if with_action:
                 frame["action"] = (sign * np.sin(phase + np.arange(action_dim))).astype(np.float32)

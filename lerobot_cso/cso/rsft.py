@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from accelerate import Accelerator, DistributedDataParallelKwargs
 from lerobot.configs import parser
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
 from tqdm import tqdm
@@ -45,6 +45,7 @@ from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError
 from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
+from lerobot_cso.policy.modeling_cso import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
 from lerobot_cso.rollout_stage import RolloutStageConfig
 from lerobot_cso.stage import CheckpointStage
@@ -80,6 +81,12 @@ class RSFTConfig(RolloutStageConfig):
     batch_size: int = 256
     lr: float = 1e-4
     min_lr: float = 1e-5
+    # Not in the paper, whose fine-tune reads the buffer alone: this fraction of each epoch's decisions are frames
+    # of the IL demonstrations (the LeRobotDataset ``demos_repo_id`` at ``demos_root``; the pipeline's own demos
+    # there), each with the frozen autoencoder's tokens of its action chunk, the targets IL trained on.
+    demo_fraction: float = 0.0
+    demos_root: Path | None = None
+    demos_repo_id: str = "local/metaworld_demos"
     # Publishing the success buffer with LeRobot's push_to_hub.
     push_to_hub: bool = False
     repo_id: str = "local/cso_rsft_buffer"
@@ -95,6 +102,10 @@ class RSFTConfig(RolloutStageConfig):
             raise UsageError(f"epochs must be >= 0, got {self.epochs}")
         if not 0 < self.min_lr <= self.lr:
             raise UsageError(f"learning rates must satisfy 0 < min_lr <= lr, got min_lr={self.min_lr}, lr={self.lr}")
+        if not 0 <= self.demo_fraction < 1:
+            raise UsageError(f"demo_fraction must be in [0, 1), got {self.demo_fraction}")
+        if self.demo_fraction and self.demos_root is None:
+            raise UsageError("--demo_fraction needs --demos_root=<the IL demonstrations' LeRobotDataset folder>")
         if self.push_to_hub and self.repo_id.startswith("local/"):
             raise UsageError("--push_to_hub=true needs --repo_id=<user>/<name>")
         return tasks
@@ -269,6 +280,43 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     return out
 
 
+class DecisionItems(torch.utils.data.Dataset):
+    """Items of ``frames`` reduced to what Eq. 6 reads: the policy's inputs, the task and the skill tokens.
+
+    ``tokens`` (one row per item, optional) replaces the frame's stored skill tokens; every item is a decision.
+    """
+
+    def __init__(self, frames: torch.utils.data.Dataset, keys: list[str], tokens: torch.Tensor | None = None) -> None:
+        self.frames, self.keys, self.tokens = frames, keys, tokens
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        frame = self.frames[i]
+        item = {k: frame[k] for k in self.keys}
+        item[SKILL_TOKENS_KEY] = frame[SKILL_TOKENS_KEY] if self.tokens is None else self.tokens[i]
+        item[SKILL_START_KEY] = torch.ones(1, dtype=torch.int64)
+        return item
+
+
+def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
+    """``count`` demonstration frames (drawn with R-SFT's seed) tokenised by the frozen autoencoder."""
+    if not (cfg.demos_root / "meta" / "info.json").is_file():
+        raise UsageError(f"--demos_root={cfg.demos_root} is not a LeRobotDataset (no meta/info.json)")
+    fps = LeRobotDatasetMetadata(cfg.demos_repo_id, root=cfg.demos_root).fps
+    chunk = {"action": [i / fps for i in range(policy.config.chunk_size)]}
+    ds = in_memory(LeRobotDataset(cfg.demos_repo_id, root=cfg.demos_root, delta_timestamps=chunk, video_backend="pyav"))
+    picked = torch.randperm(len(ds), generator=torch.Generator().manual_seed(cfg.seed))[: min(count, len(ds))]
+    frames = torch.utils.data.Subset(ds, picked.tolist())
+    tokens = []
+    policy.autoencoder.eval()
+    with torch.no_grad():
+        for batch in torch.utils.data.DataLoader(frames, batch_size=256):
+            tokens.append(policy.autoencoder.encode(pre(batch)["action"])[1].cpu())
+    return DecisionItems(frames, keys, torch.cat(tokens))
+
+
 def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     """Eq. 6 on the buffer's decision frames, then freeze the encoders and save the checkpoint.
 
@@ -287,9 +335,16 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
         video_backend="pyav",  # as the demos: skips probing torchcodec (a traceback per load where it cannot load)
     )
     starts = np.flatnonzero(np.asarray(ds.hf_dataset[SKILL_START_KEY]).reshape(-1) == 1)
+    items: torch.utils.data.Dataset = torch.utils.data.Subset(in_memory(ds), starts.tolist())
+    if cfg.demo_fraction:
+        keys = [*policy.config.input_features, "task"]
+        count = round(len(starts) * cfg.demo_fraction / (1 - cfg.demo_fraction))
+        demos = demo_decisions(cfg, policy, pre, keys, count)
+        print(f"R-SFT fine-tune: {len(starts)} buffer decisions + {len(demos)} demonstration frames", flush=True)
+        items = torch.utils.data.ConcatDataset([DecisionItems(items, keys), demos])
     generator = torch.Generator().manual_seed(cfg.seed)
     loader = torch.utils.data.DataLoader(
-        torch.utils.data.Subset(in_memory(ds), starts.tolist()),
+        items,
         batch_size=cfg.batch_size,
         shuffle=True,
         generator=generator,
@@ -312,18 +367,19 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     start_epoch = (state.progress() or {"epochs_done": 0})["epochs_done"]
     if start_epoch:
         accelerator.load_state(state.directory)
-    meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
-    meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
     for epoch in range(start_epoch, cfg.epochs):
-        tracker = MetricsTracker(cfg.batch_size, len(starts), ds.num_episodes, meters, epoch * len(loader))
-        tracker.reset_averages()
+        # Fresh meters per epoch: the tracker adds the policy's own (nll, token_acc) to this dict, and a later
+        # tracker would treat those as the caller's and never update them.
+        meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
+        meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
+        tracker = MetricsTracker(cfg.batch_size, len(items), ds.num_episodes, meters, epoch * len(loader))
         for batch in tqdm(loader, desc=f"R-SFT epoch {epoch + 1}/{cfg.epochs}", leave=False):
             tracker, _ = update_policy(
                 tracker, policy, pre(batch), optimizer, optimizer_cfg.grad_clip_norm, accelerator, scheduler
             )
             tracker.step()
         if main:
-            print(f"R-SFT epoch {epoch + 1}/{cfg.epochs} ({len(starts)} decisions): {tracker}", flush=True)
+            print(f"R-SFT epoch {epoch + 1}/{cfg.epochs} ({len(items)} decisions): {tracker}", flush=True)
         state.save({"epochs_done": epoch + 1}, accelerator.save_state, main, accelerator.wait_for_everyone)
     policy = accelerator.unwrap_model(policy)
     policy.set_encoders_frozen(True)  # Algorithm 1, line 11
