@@ -6,6 +6,8 @@ the same ``--states`` initial states per task taken from the far end of the SPO 
 pool and R-SFT's collection never reach), ``--k`` times each at evaluation's sampling (T 1, top-5). Prints
 one table: the success rate per task and mean (± one binomial standard error), the states the successes were
 kept from and the successes per kept state. Finished variants are skipped on a rerun; ``--json`` saves the table.
+A variant that changes only the fine-tune (``COLLECTION_FROM``) fine-tunes a copy of another variant's
+collection; one that mixes in demonstrations takes those of the IL checkpoint's pipeline (``<out>/demos``).
 
     python benchmarks/rsft_study.py --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
         --output_dir=outputs/rsft_study --variants=keep_all,cap2
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -40,15 +43,29 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "cap2": {"max_successes_per_state": 2},
     "t1_top5": KEEP_ALL | {"sampling": Sampling(temperature=1.0, top_k=5)},
     "e3": KEEP_ALL | {"epochs": 3},
+    "cap2_demos50": {"max_successes_per_state": 2, "demo_fraction": 0.5},
+    "cap2_lr3e4": {"max_successes_per_state": 2, "lr": 3e-4, "min_lr": 3e-5},
 }
+# Variants that differ from another only in the fine-tune start from a copy of its collection (same spec).
+COLLECTION_FROM = {"cap2_demos50": "cap2", "cap2_lr3e4": "cap2"}
 
 
-def timed_rsft(pipeline: Pipeline, il_path: Path, out: Path, settings: dict[str, Any]) -> float | None:
-    """R-SFT of one variant (skipped when its checkpoint exists: None); seconds taken."""
+def timed_rsft(
+    pipeline: Pipeline, il_path: Path, out: Path, settings: dict[str, Any], source: Path | None
+) -> float | None:
+    """R-SFT of one variant (skipped when its checkpoint exists: None); seconds taken. With ``source`` (a
+    variant with the same collection spec), its journal and buffer are copied first: only the fine-tune runs."""
     if (out / "pretrained_model" / "config.json").is_file():
         return None
+    variant = Pipeline(dataclasses.replace(pipeline.cfg, rsft=dataclasses.replace(pipeline.cfg.rsft, **settings)))
+    cfg = dataclasses.replace(variant.rsft_config(policy_config(il_path)), output_dir=out)
+    if source is not None and not (out / "buffer").exists():
+        if not (source / "buffer" / "meta" / "info.json").is_file():
+            raise SystemExit(f"{out.name} fine-tunes {source.name}'s collection: run {source.name} first")
+        for part in ("journal", "buffer"):
+            shutil.copytree(source / part, out / part)
     start = time.perf_counter()
-    run_rsft(dataclasses.replace(pipeline.rsft_config(policy_config(il_path)), output_dir=out, **settings))
+    run_rsft(cfg)
     return time.perf_counter() - start
 
 
@@ -67,7 +84,7 @@ def main() -> int:
     parser.add_argument("--il_path", type=Path, required=True)
     parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/rsft_study"))
-    parser.add_argument("--variants", default="shipped,cap2")
+    parser.add_argument("--variants", default="keep_all,cap2")
     parser.add_argument("--states", type=int, default=100)
     parser.add_argument("--k", type=int, default=2)
     parser.add_argument("--num_envs", type=int, default=48)
@@ -78,7 +95,10 @@ def main() -> int:
         parser.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
     torch.set_num_threads(1)
     with open(args.config) as f:
-        pipeline = Pipeline(draccus.load(PipelineConfig, f))
+        cfg = draccus.load(PipelineConfig, f)
+    # The IL checkpoint's own pipeline output (<out>/il/checkpoints/last/pretrained_model): its demos are the
+    # ones a demo-mixing variant mixes in.
+    pipeline = Pipeline(dataclasses.replace(cfg, output_dir=args.il_path.parents[3]))
     tasks = resolve_tasks(pipeline.cfg.tasks)
     rows = {}
     results_file = args.output_dir / "study.json"
@@ -92,7 +112,11 @@ def main() -> int:
             out = args.output_dir / name
             settings = VARIANTS[name]
             row = {"settings": {k: str(v) for k, v in settings.items()}}
-            row["rsft_seconds"] = timed_rsft(pipeline, args.il_path, out, settings)
+            source = COLLECTION_FROM.get(name)
+            if source:
+                row["collection_copied_from"] = source
+            source_dir = args.output_dir / source if source else None
+            row["rsft_seconds"] = timed_rsft(pipeline, args.il_path, out, settings, source_dir)
             row["collection"] = json.loads((out / "collection.json").read_text())
             files = {t: list((out / "journal" / "episodes" / t).glob("*.npz")) for t in tasks}
             kept = {t: len(files[t]) for t in tasks}
