@@ -334,6 +334,7 @@ class DemosStage:
 
     name = "demos"
     redo_on_change = False
+    grows = ()
 
     def __init__(self, cfg: DemosConfig) -> None:
         self.cfg = cfg
@@ -361,6 +362,7 @@ class DatasetStage:
 
     name = "demos"
     redo_on_change = True  # only a check: redoing it is cheap, and it never writes into the user's dataset
+    grows = ()
 
     def __init__(self, cfg: DemosConfig) -> None:
         self.cfg = cfg

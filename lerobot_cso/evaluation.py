@@ -193,6 +193,7 @@ class EvalStage:
     """A pipeline evaluation (``eval_<label>``), redone whenever its settings or its policy change."""
 
     redo_on_change = True
+    grows = ()
 
     def __init__(self, label: str, cfg: EvalConfig) -> None:
         self.name, self.cfg = f"eval_{label}", cfg

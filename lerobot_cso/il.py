@@ -70,6 +70,7 @@ class ILStage:
 
     name = "il"
     redo_on_change = False
+    grows = ()  # more steps are not a continuation: the cosine schedule spans all of them
 
     def __init__(self, cfg: ILConfig, dataset: Path, repo_id: str, output_dir: Path, threads: int | None) -> None:
         self.cfg, self.dataset, self.repo_id, self.out, self.threads = cfg, dataset, repo_id, output_dir, threads

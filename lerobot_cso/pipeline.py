@@ -164,18 +164,19 @@ class Pipeline:
     def execute(self, stage: Stage, after: str | None = None) -> Any:
         """Run ``stage`` unless its record (same spec, ``after`` the same run of its upstream stage) says it
         completed and it is complete; a changed spec over an existing output is refused unless the stage
-        is simply redone (``redo_on_change``)."""
+        is simply redone (``redo_on_change``) or only grows in one of the stage's ``grows`` keys (it continues)."""
         spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
         output, record = stage.output(), read_json(self.record_path(stage.name))
         if record is not None and record["spec"] != spec and output.exists() and not stage.redo_on_change:
             old, new = _flatten(record["spec"]), _flatten(spec)
-            changed = ", ".join(
-                f"{k}: {old.get(k)} → {new.get(k)}" for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)
-            )
-            raise UsageError(
-                f"{output} was made with other settings or inputs ({changed}); delete it and the stages after it, "
-                "or choose another output_dir"
-            )
+            changed = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
+            listed = ", ".join(f"{k}: {old.get(k)} → {new.get(k)}" for k in changed)
+            if not all(k in stage.grows and isinstance(old.get(k), int) and new.get(k, 0) > old[k] for k in changed):
+                raise UsageError(
+                    f"{output} was made with other settings or inputs ({listed}); delete it and the stages after "
+                    "it, or choose another output_dir"
+                )
+            print(f"[pipeline] {stage.name}: continuing ({listed})", flush=True)
         if record is not None and record["spec"] == spec and record["complete"] and stage.complete():
             print(f"[pipeline] {stage.name}: complete, skipped ({output})", flush=True)
             self.seconds[stage.name] = record["seconds"]

@@ -24,6 +24,9 @@ class Stage(Protocol):
     # True: a changed spec simply redoes the stage (evaluations); False: a changed spec with an existing
     # output is refused, so stale results are never mixed with new ones.
     redo_on_change: bool
+    # Flattened spec keys (e.g. "spo.iterations") whose increase continues an existing output instead of being
+    # refused: the stage then resumes, and the longer run is what it would have been from the start.
+    grows: tuple[str, ...]
 
     def spec(self) -> dict[str, Any]:
         """The settings and inputs the stage's result depends on."""
@@ -44,6 +47,7 @@ class CheckpointStage:
 
     name: str
     redo_on_change = False
+    grows: tuple[str, ...] = ()
 
     def __init__(self, cfg: Any, make_engine: Callable[..., Any] | None = None) -> None:
         self.cfg, self.make_engine = cfg, make_engine

@@ -138,3 +138,46 @@ def test_rsft_mixes_in_the_pipelines_own_demonstrations(tiny_config, tmp_path):
     mixing = dataclasses.replace(cfg, rsft=dataclasses.replace(cfg.rsft, demo_fraction=0.5))
     rsft = Pipeline(mixing).rsft_config(None)
     assert (rsft.demos_root, rsft.demos_repo_id) == (tmp_path / "run" / "demos", cfg.demos.repo_id)
+
+
+class CountingStage:
+    """A stage whose output is a directory and whose spec is ``{"spo": settings}``, as SPO's."""
+
+    name, redo_on_change, grows = "spo", False, ("spo.iterations",)
+
+    def __init__(self, out: Path, **settings: int) -> None:
+        self.out, self.settings, self.runs = out, settings, 0
+
+    def spec(self) -> dict:
+        return {"spo": self.settings}
+
+    def output(self) -> Path:
+        return self.out
+
+    def complete(self) -> bool:
+        return self.out.is_dir()
+
+    def run(self) -> dict:
+        self.runs += 1
+        self.out.mkdir(exist_ok=True)
+        return dict(self.settings)
+
+
+def test_more_iterations_continue_a_finished_stage_and_any_other_change_is_refused(tiny_config, tmp_path, capsys):
+    from lerobot_cso.cso.spo import SPOStage
+    from lerobot_cso.errors import UsageError
+
+    assert SPOStage.grows == ("spo.iterations",)
+    with open(tiny_config) as f:
+        runner = Pipeline(draccus.load(PipelineConfig, f))
+    out = tmp_path / "spo"
+    first = CountingStage(out, iterations=10, lr=1)
+    runner.execute(first)
+    runner.execute(first)
+    assert first.runs == 1  # complete under the same spec: skipped
+    longer = CountingStage(out, iterations=20, lr=1)
+    assert runner.execute(longer) == {"iterations": 20, "lr": 1} and longer.runs == 1
+    assert "[pipeline] spo: continuing (spo.iterations: 10 → 20)" in capsys.readouterr().out
+    for changed in ({"iterations": 15, "lr": 1}, {"iterations": 30, "lr": 2}):
+        with pytest.raises(UsageError, match="was made with other settings or inputs"):
+            runner.execute(CountingStage(out, **changed))

@@ -166,12 +166,18 @@ def test_an_exhausted_pool_ends_the_collection(rsft_policy, tmp_path):
 def test_resume_keeps_the_pools_skip_memory(rsft_policy, tmp_path):
     pool = dict(state_pool=2, skip_uniform_for=1, iterations=2)
     whole: list[ScriptedEngine] = []
-    spo.run_spo(make_cfg(rsft_policy, tmp_path / "whole", **pool), make_engine=engine_factory(whole))
+    history = spo.run_spo(make_cfg(rsft_policy, tmp_path / "whole", **pool), make_engine=engine_factory(whole))
     parts: list[ScriptedEngine] = []
     first = make_cfg(rsft_policy, tmp_path / "parts", **pool | {"iterations": 1})
     spo.run_spo(first, make_engine=engine_factory(parts))
-    spo.run_spo(make_cfg(rsft_policy, tmp_path / "parts", **pool), make_engine=engine_factory(parts))
+    continued = spo.run_spo(make_cfg(rsft_policy, tmp_path / "parts", **pool), make_engine=engine_factory(parts))
     assert [c for e in parts for c in calls(e)] == calls(whole[0])
+    # A 1-iteration run continued to 2 is the 2-iteration run: same updates, same weights.
+    assert [{k: v for k, v in h.items() if k != "seconds"} for h in continued] == [
+        {k: v for k, v in h.items() if k != "seconds"} for h in history
+    ]
+    weights = [load_policy(tmp_path / run / "pretrained_model")[0].state_dict() for run in ("whole", "parts")]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
     assert calls(whole[0])[-1] == [(TASKS[0], S + 1), (TASKS[1], S + 1)]  # iteration 2 skipped seed S
 
 

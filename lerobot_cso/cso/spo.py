@@ -413,6 +413,9 @@ class SPOStage(CheckpointStage):
     """The pipeline's SPO stage: the CSO checkpoint ``output_dir/pretrained_model`` and its history."""
 
     name = "spo"
+    # A finished run continued to more iterations is the longer run: the lr is constant and each iteration's
+    # draws depend only on the seed and the iteration's index (the pool and its skip memory are checkpointed).
+    grows = ("spo.iterations",)
 
     def run(self) -> list[dict[str, float]]:
         return run_spo(self.cfg, self.make_engine or RolloutEngine.for_stage)
