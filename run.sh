@@ -54,6 +54,13 @@ case "$cmd" in
         exec lerobot-cso pipeline --config_path=configs/metaworld_demo.yaml "$@" ;;
     test)
         shift
+        # The pynput keyboard test needs an X server: Xvfb from the system's packages, where this user may
+        # install them (elsewhere that one test is skipped, saying why).
+        if ! command -v Xvfb >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+            echo "[setup] installing xvfb (an X server for the pynput keyboard test)" >&2
+            apt-get install -y -q xvfb >/dev/null 2>&1 || (apt-get update -q >/dev/null 2>&1 \
+                && apt-get install -y -q xvfb >/dev/null 2>&1) || echo "[setup] xvfb could not be installed" >&2
+        fi
         ruff check .
         # One worker per core, one torch thread each; a test module stays on one worker, so its module-scoped
         # fixtures are built once.

@@ -56,28 +56,31 @@ class ShardedRollouts:
         seed: int = 0,
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
+        stop_after: int | None = None,
     ) -> RolloutResult:
         """As :meth:`RolloutEngine.rollout`; ``on_episode`` runs on the main process, for every episode."""
         states = [InitialState(*s) for s in initial_states]
         if self.world_size == 1:
-            return self.engine.rollout(states, k, sampling, seed, progress, on_episode)
+            return self.engine.rollout(states, k, sampling, seed, progress, on_episode, stop_after)
         mine = list(range(self.rank, len(states), self.world_size))
         local = (
-            self.engine.rollout([states[g] for g in mine], k, sampling, seeds.round_seed(seed, self.rank), progress)
+            self.engine.rollout(
+                [states[g] for g in mine], k, sampling, seeds.round_seed(seed, self.rank), progress, None, stop_after
+            )
             if mine
             else None
         )
         shards = gather_object([(mine, local)])
-        episodes: list[Episode] = [None] * (len(states) * k)  # type: ignore[list-item]
+        episodes: list[Episode] = []
         seconds = policy_seconds = 0.0
         for groups, result in shards:
             if result is None:
                 continue
             seconds, policy_seconds = max(seconds, result.seconds), max(policy_seconds, result.policy_seconds)
-            for local_group, group in enumerate(groups):
-                for sample, episode in enumerate(result.groups()[local_group]):
-                    episode.group = group
-                    episodes[group * k + sample] = episode
+            for episode in result.episodes:
+                episode.group = groups[episode.group]
+                episodes.append(episode)
+        episodes.sort(key=lambda e: (e.group, e.sample))
         if on_episode is not None and self.rank == 0:
             for episode in episodes:
                 on_episode(episode)

@@ -82,6 +82,7 @@ class BanditEngine:
         seed: int = 0,
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
+        stop_after: int | None = None,
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         jobs = [(g, i, s) for g, s in enumerate(states) for i in range(k)]
@@ -96,6 +97,8 @@ class BanditEngine:
         n = self.policy.config.n_action_steps
         episodes = []
         for row, (g, i, s) in enumerate(jobs):
+            if stop_after is not None and sum(e.success for e in episodes if e.group == g) >= stop_after:
+                continue
             success = int(decisions[0][1][row, 0]) in self.answer[(s.task, context_class(s.seed))]
             d = 1 if success else self.failure_decisions
             length = d * n

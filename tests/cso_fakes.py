@@ -101,12 +101,15 @@ class ScriptedEngine:
         seed: int = 0,
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
+        stop_after: int | None = None,
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         self.calls.append(states)
         episodes = []
         for g, s in enumerate(states):
             for i in range(k):
+                if stop_after is not None and sum(e.success for e in episodes if e.group == g) >= stop_after:
+                    break
                 if self.crash_after is not None and self.delivered >= self.crash_after:
                     raise KeyboardInterrupt("simulated crash")
                 episode = self.episode(s.task, s.seed, g, i)

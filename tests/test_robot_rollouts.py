@@ -7,14 +7,19 @@ collection is killed with SIGKILL and resumed, then hit by an e-stop sent on the
 and resumed again with ``--robot.recovery=reset``; SPO is killed and resumed mid-iteration and its update may
 change only the prior; ``lerobot-rollout`` drives the final checkpoint. ``--display_data`` is checked on an eval
 with rerun kept in memory, bad input as one error line of the real CLI, and the in-place recovery of
-``--operator.on_fault=wait`` against the frames on the bus.
+``--operator.on_fault=wait`` against the frames on the bus, R-SFT's ``--stop_state_at_cap``, and
+``--operator.type=keyboard`` through LeRobot's pynput listener on a virtual X display (Xvfb).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -26,10 +31,12 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from piper_can import codec
 from robot_fixtures import (
+    BIN,
     REST,
     TASK,
     ChannelRecorder,
     EmulatorProcess,
+    cli_env,
     explain,
     lerobot_cso,
     run_cli,
@@ -470,3 +477,87 @@ def test_with_on_fault_wait_the_operator_recovers_the_arm_in_place_and_nothing_r
     motion = [t for t, i, _ in frames.frames if i in codec.ID_JOINT_COMMAND and waiting_since < t < reset_at]
     assert not motion, f"{len(motion)} joint commands reached the e-stopped arm"
     assert any(i in codec.ID_JOINT_COMMAND and t > reset_at for t, i, _ in frames.frames)
+
+
+def test_with_stop_state_at_cap_no_attempt_past_a_states_cap_reaches_the_arm(arm, il_policy, home, tmp_path):
+    """R-SFT with 3 strikes, a cap of 1 and ``--stop_state_at_cap=true``: state 0 fails attempt 1 (a key) and
+    succeeds attempt 2, state 1 succeeds attempt 1; the other three attempts are never run."""
+    out = tmp_path / "rsft"
+    script = write_script(tmp_path / "cap.json", {"default": NEAR}, {"0/1/0": [2, "failure"]}, 0.1, {})
+    args = ["rsft", f"--policy.path={il_policy}", *robot_args(arm), *EPISODE, f"--output_dir={out}"]
+    args += ["--operator.type=scripted", f"--operator.script={script}", "--n_strikes=3", "--successes_per_task=2"]
+    args += ["--max_successes_per_state=1", "--stop_state_at_cap=true", "--states_per_round=2"]
+    args += ["--epochs=1", "--batch_size=8", "--robot.recovery=reset"]
+    rc, stdout, stderr = finish(args, home)
+    assert rc == 0, stderr[-3000:]
+    assert live_episodes(stdout) == ["0000000_001", "0000000_002", "0000001_001"]
+    assert journal_episodes(out) == {"0000000_001", "0000000_002", "0000001_001"}
+    report = json.loads((out / "collection.json").read_text())[TASK]
+    assert report == {"rollouts": 3, "successes": 2, "kept": 2, "states_tried": 2, "states_struck_out": 0}
+
+
+@pytest.fixture(scope="module")
+def x_display() -> Iterator[str]:
+    """A virtual X display for LeRobot's pynput key listener (``./run.sh test`` installs Xvfb where it can)."""
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        pytest.skip("no Xvfb here: the pynput keyboard backend needs an X display")
+    read, write = os.pipe()
+    command = [xvfb, "-displayfd", str(write), "-screen", "0", "320x240x24", "-nolisten", "tcp"]
+    server = subprocess.Popen(command, pass_fds=(write,), stderr=subprocess.DEVNULL)
+    os.close(write)
+    with os.fdopen(read) as pipe:
+        display = f":{pipe.readline().strip()}"
+    yield display
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def type_key(display: str, keysym: str) -> None:
+    """Press and release the key of X keysym ``keysym`` ("Return", "s") on ``display`` through XTest, from
+    another X client, as a keyboard would (python-xlib, which pynput's X backend is built on)."""
+    code = "import sys; from Xlib import X, XK, display; from Xlib.ext import xtest; d = display.Display(); "
+    code += "k = d.keysym_to_keycode(XK.string_to_keysym(sys.argv[1])); "
+    code += "xtest.fake_input(d, X.KeyPress, k); xtest.fake_input(d, X.KeyRelease, k); d.sync()"
+    env = {**os.environ, "DISPLAY": display}
+    subprocess.run([sys.executable, "-c", code, keysym], env=env, check=True, timeout=60)
+
+
+def test_the_keyboard_operator_takes_its_keys_from_lerobots_pynput_listener_on_a_display(
+    arm, il_policy, home, tmp_path, x_display
+):
+    """``lerobot-cso eval --operator.type=keyboard`` with a display and no terminal: LeRobot's listener is the
+    pynput one, and keys typed on the display start each trial (Enter) and label it (s, then f)."""
+    out = tmp_path / "out"
+    args = ["eval", f"--policy.path={il_policy}", *robot_args(arm), "--operator.type=keyboard"]
+    args += ["--operator.fps=30", "--operator.episode_time_s=30", "--operator.rest_time_s=0.5", f"--tasks={TASK}"]
+    args += [f"--operator.rest_pose=[{','.join(map(str, REST))}]", "--episodes_per_task=2", f"--output_dir={out}"]
+    with open(tmp_path / "stderr.txt", "w") as stderr:
+        process = subprocess.Popen(
+            [str(BIN / "lerobot-cso"), *args],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+            text=True,
+            env={**cli_env(home), "DISPLAY": x_display},
+            cwd=home,
+        )
+        lines: list[str] = []
+        try:
+            for trial, verdict in ((0, "s"), (1, "f")):
+                prompt = f">>> state {trial}, attempt 1 of 1 — arrange a new scene; then press Enter"
+                while not any(line.startswith(prompt) for line in lines):
+                    line = process.stdout.readline()
+                    assert line, (tmp_path / "stderr.txt").read_text()[-3000:]
+                    lines.append(line)
+                type_key(x_display, "Return")
+                time.sleep(1.0)  # the trial starts at the next poll; a verdict before it would be dropped
+                type_key(x_display, verdict)
+            rest, _ = process.communicate(timeout=TIMEOUT_S)
+        finally:
+            process.kill()
+    stdout = "".join(lines) + rest
+    assert process.returncode == 0, (tmp_path / "stderr.txt").read_text()[-3000:]
+    assert re.search(r"^state 0, attempt 1: success after \d+ steps", stdout, flags=re.M), stdout
+    assert re.search(r"^state 1, attempt 1: failure after \d+ steps", stdout, flags=re.M), stdout
+    assert json.loads((out / "eval.json").read_text())["success_rate"][TASK]["mean"] == 0.5

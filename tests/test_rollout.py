@@ -119,6 +119,24 @@ def test_async_env_workers_give_the_same_episodes_as_sync():
         np.testing.assert_array_equal(traces["sync"][i].actions, traces["async"][i].actions)
 
 
+def test_the_pool_asks_skip_when_a_jobs_turn_comes_and_runs_no_skipped_job():
+    """Two slots, four jobs: job 2 is asked about only once a slot is free (a job has ended) and is skipped
+    then; job 3, the last, is skipped too, and the run still ends."""
+    jobs = [Job("reach-v3", s, s) for s in range(4)]
+    ended: list[int] = []
+    asked: dict[int, list[int]] = {}
+
+    def skip(job: Job) -> bool:
+        asked[job.key] = list(ended)
+        return job.key == 3 or (job.key == 2 and bool(ended))
+
+    with EnvPool(2, max_steps=24, vectorization="sync") as pool:
+        for index, _ in pool.run(jobs, ExpertController(2, noise_std=0.2, seed=0), skip=skip):
+            ended.append(index)
+    assert sorted(ended) == [0, 1]
+    assert list(asked) == [0, 1, 2, 3] and asked[0] == asked[1] == [] and asked[2]
+
+
 def test_camera_frames_are_recorded_per_step(loaded):
     with RolloutEngine(*loaded, EnvPool(2, ("corner2",), max_steps=10), task_description) as eng:
         episodes = eng.rollout([("reach-v3", 0)], k=2, sampling=Sampling(greedy=True)).episodes
@@ -131,6 +149,8 @@ def test_camera_frames_are_recorded_per_step(loaded):
 def test_bad_requests_are_clear_errors(engine):
     with pytest.raises(ValueError, match="k must be >= 1"):
         engine.rollout(STATES, k=0)
+    with pytest.raises(ValueError, match="stop_after must be >= 1"):
+        engine.rollout(STATES, k=2, stop_after=0)
     with pytest.raises(ValueError, match="unknown MetaWorld task 'reach-v2'"):
         engine.rollout([("reach-v2", 0)])
     assert np.all(engine.rollout(STATES[:1], k=1).episodes[0].actions.abs().numpy() <= 1.0)

@@ -11,7 +11,7 @@ or a chunk ``(num_envs, L, A)`` executed open-loop.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -73,10 +73,16 @@ class RolloutBackend(Protocol):
     num_envs: int  # slots stepped together (one policy batch)
 
     def run(
-        self, jobs: Sequence[Job], controller: Controller, start_every: int = 1, progress: str | None = None
+        self,
+        jobs: Sequence[Job],
+        controller: Controller,
+        start_every: int = 1,
+        progress: str | None = None,
+        skip: Callable[[Job], bool] | None = None,
     ) -> Iterator[tuple[int, Trace]]:
         """Yield ``(job index, trace)`` as each episode finishes. Episodes start only on steps that are
-        multiples of ``start_every``, so every running episode decides on the same steps."""
+        multiples of ``start_every``, so every running episode decides on the same steps. A job for which
+        ``skip(job)`` is True when its turn to start comes is not run and yields nothing."""
 
     def close(self) -> None:
         """Release the world (env processes, the robot)."""

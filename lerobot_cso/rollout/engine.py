@@ -21,6 +21,7 @@ initial states, K, sampling settings, seed and number of envs.
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -79,7 +80,7 @@ class RolloutResult:
     """All episodes of one call, ordered by (group, sample), with throughput figures."""
 
     episodes: list[Episode]
-    k: int
+    k: int  # samples asked per group
     sampling: Sampling
     seconds: float
     policy_seconds: float
@@ -105,8 +106,9 @@ class RolloutResult:
         return float(np.mean([e.success for e in self.episodes]))
 
     def groups(self) -> list[list[Episode]]:
-        """The episodes grouped by initial state: ``groups()[g]`` holds the K samples of state ``g``."""
-        return [self.episodes[g * self.k : (g + 1) * self.k] for g in range(len(self.episodes) // self.k)]
+        """The episodes grouped by initial state: ``groups()[g]`` holds the samples of state ``g`` (K of them,
+        fewer when the call stopped groups early)."""
+        return [list(group) for _, group in itertools.groupby(self.episodes, key=lambda e: e.group)]
 
 
 class SkillPolicy(Protocol):
@@ -290,15 +292,30 @@ class RolloutEngine:
         seed: int = 0,
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
+        stop_after: int | None = None,
     ) -> RolloutResult:
         """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample).
 
-        ``on_episode`` is called with each episode as soon as it finishes (in finishing order).
+        ``on_episode`` is called with each episode as soon as it finishes (in finishing order). With
+        ``stop_after``, a group whose finished samples hold that many successes starts no more samples: the
+        ones not started are absent from the result.
         """
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
+        if stop_after is not None and stop_after < 1:
+            raise ValueError(f"stop_after must be >= 1, got {stop_after}")
         states = [InitialState(*s) for s in initial_states]
         jobs = [Job(s.task, s.seed, (g, i)) for g, s in enumerate(states) for i in range(k)]
+        successes = [0] * len(states)
+        skipped: set[int] = set()
+
+        def skip(job: Job) -> bool:
+            group, sample = job.key
+            if stop_after is None or successes[group] < stop_after:
+                return False
+            skipped.add(group * k + sample)
+            return True
+
         device = torch.device(self.policy.config.device or "cpu")
         generator = torch.Generator(device=device).manual_seed(seed)
         controller = _PolicyController(self.sampler, self.backend.num_envs, self.describe, sampling, generator)
@@ -307,13 +324,18 @@ class RolloutEngine:
         started = time.perf_counter()
         episodes: list[Episode] = [None] * len(jobs)  # type: ignore[list-item]
         try:
-            for index, trace in self.backend.run(jobs, controller, self.policy.config.n_action_steps, progress):
+            for index, trace in self.backend.run(jobs, controller, self.policy.config.n_action_steps, progress, skip):
                 episodes[index] = _episode(trace, self.describe)
+                successes[index // k] += trace.success
                 if on_episode is not None:
                     on_episode(episodes[index])
         finally:
             self.policy.train(was_training)
-        return RolloutResult(episodes, k, sampling, time.perf_counter() - started, controller.policy_seconds)
+        missing = {i for i, e in enumerate(episodes) if e is None} - skipped
+        if missing:
+            raise RuntimeError(f"the backend returned no episode for {len(missing)} jobs it did not skip")
+        run = [e for e in episodes if e is not None]
+        return RolloutResult(run, k, sampling, time.perf_counter() - started, controller.policy_seconds)
 
     def close(self) -> None:
         self.backend.close()

@@ -101,18 +101,23 @@ class _Scheduler:
     def __bool__(self) -> bool:
         return bool(self._queues)
 
-    def next(self, last_task: str | None) -> tuple[int, Job]:
-        task = last_task if last_task in self._queues else None
-        if task is None:
-            task = next((t for t in self._queues if t not in self._claimed), None)
-        if task is None:
-            task = max(self._queues, key=lambda t: len(self._queues[t]))
-        self._claimed.add(task)
-        queue = self._queues[task]
-        entry = queue.popleft()
-        if not queue:
-            del self._queues[task]
-        return entry
+    def next(self, last_task: str | None, skip: Callable[[Job], bool] | None = None) -> tuple[int, Job] | None:
+        """The next job for a slot that ran ``last_task``, passing over those ``skip`` rejects; None when
+        no job is left."""
+        while self._queues:
+            task = last_task if last_task in self._queues else None
+            if task is None:
+                task = next((t for t in self._queues if t not in self._claimed), None)
+            if task is None:
+                task = max(self._queues, key=lambda t: len(self._queues[t]))
+            self._claimed.add(task)
+            queue = self._queues[task]
+            entry = queue.popleft()
+            if not queue:
+                del self._queues[task]
+            if skip is None or not skip(entry[1]):
+                return entry
+        return None
 
 
 class EnvPool:
@@ -176,8 +181,10 @@ class EnvPool:
         controller: Controller,
         start_every: int = 1,
         progress: str | None = None,
+        skip: Callable[[Job], bool] | None = None,
     ) -> Iterator[tuple[int, Trace]]:
-        """Run every job to its end, yielding ``(job index, trace)`` as each episode finishes."""
+        """Run every job (but those ``skip`` rejects at their start) to its end, yielding ``(job index, trace)``
+        as each episode finishes."""
         for task in {job.task for job in jobs}:
             self._check_task(task)
         recorded = self.cameras if self.frames == "all" else ()
@@ -196,9 +203,9 @@ class EnvPool:
             if scheduler and step % start_every == 0:
                 starting: dict[str, list[tuple[int, int, Job]]] = {}
                 for slot in range(self.num_envs):
-                    if running[slot] is None and scheduler:
-                        index, job = scheduler.next(self._tasks[slot])
-                        starting.setdefault(job.task, []).append((slot, index, job))
+                    entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
+                    if entry is not None:
+                        starting.setdefault(entry[1].task, []).append((slot, *entry))
                 for task, entries in starting.items():
                     slots = [slot for slot, _, _ in entries]
                     options = {"task": task, **start_options}
@@ -209,6 +216,8 @@ class EnvPool:
                         parked[slot] = False
                         self._tasks[slot] = task
                         controller.start(slot, job)
+            if not scheduler and all(r is None for r in running):
+                break  # the last jobs were skipped
             to_park = [slot for slot in range(self.num_envs) if running[slot] is None and not parked[slot]]
             if to_park:
                 obs = self._reset(to_park, {"park": True})

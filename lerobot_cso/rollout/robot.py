@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -211,9 +211,15 @@ class RobotBackend:
 
     # ------------------------------------------------------------------ the job queue
     def run(
-        self, jobs: Sequence[Job], controller: Controller, start_every: int = 1, progress: str | None = None
+        self,
+        jobs: Sequence[Job],
+        controller: Controller,
+        start_every: int = 1,
+        progress: str | None = None,
+        skip: Callable[[Job], bool] | None = None,
     ) -> Iterator[tuple[int, Trace]]:
-        """Run the jobs in order; journaled ones are replayed from disk, the others run on the robot."""
+        """Run the jobs in order; journaled ones are replayed from disk, the others (but those ``skip`` rejects,
+        asked after the replays) run on the robot."""
         attempts: dict[tuple[str, int], int] = {}
         numbered = []
         for index, job in enumerate(jobs):
@@ -227,6 +233,8 @@ class RobotBackend:
         for index, job, attempt in done:
             yield index, self._replay(job, self._path(job, attempt))
         for index, job, attempt in todo:
+            if skip is not None and skip(job):
+                continue
             trace = self._run_until_kept(job, attempt, attempts[job.task, job.init_seed], controller)
             yield index, trace
 
