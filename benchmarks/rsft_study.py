@@ -45,6 +45,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "e3": KEEP_ALL | {"epochs": 3},
     "cap2_demos50": {"max_successes_per_state": 2, "demo_fraction": 0.5},
     "cap2_lr3e4": {"max_successes_per_state": 2, "lr": 3e-4, "min_lr": 3e-5},
+    "cap2_stop": {"max_successes_per_state": 2, "stop_state_at_cap": True},
 }
 # Variants that differ from another only in the fine-tune start from a copy of its collection (same spec).
 COLLECTION_FROM = {"cap2_demos50": "cap2", "cap2_lr3e4": "cap2"}
