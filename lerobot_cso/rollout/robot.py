@@ -227,14 +227,16 @@ class RobotBackend:
             numbered.append((index, job, attempts[job.task, job.init_seed]))
         done = [n for n in numbered if self._path(n[1], n[2]).is_file()]
         todo = [n for n in numbered if not self._path(n[1], n[2]).is_file()]
-        if done and todo:
-            _, job, attempt = todo[0]
-            print(f"resuming: {len(done)} episodes on disk; next: state {job.init_seed}, attempt {attempt}", flush=True)
         for index, job, attempt in done:
             yield index, self._replay(job, self._path(job, attempt))
+        resuming = bool(done)
         for index, job, attempt in todo:
             if skip is not None and skip(job):
                 continue
+            if resuming:  # named once the replays are in: a skipped attempt is not the next one
+                next_one = f"state {job.init_seed}, attempt {attempt}"
+                print(f"resuming: {len(done)} episodes on disk; next: {next_one}", flush=True)
+                resuming = False
             trace = self._run_until_kept(job, attempt, attempts[job.task, job.init_seed], controller)
             yield index, trace
 
