@@ -11,6 +11,7 @@ from tiny_data import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.modeling_cso import masked_l1, skill_nll
+from lerobot_cso.policy.skill_prior import draw_tokens, filtered_log_probs
 
 
 def tiny_config(**overrides) -> CSOConfig:
@@ -142,6 +143,22 @@ def test_padded_chunk_steps_do_not_count():
     is_pad = torch.tensor([[False, False, True, True]])
     assert masked_l1(pred, target, is_pad).item() == pytest.approx(2.0)  # (1 + 3) / 2
     assert masked_l1(pred, target, None).item() == pytest.approx(26.0)  # (1 + 3 + 50 + 50) / 4
+
+
+def test_drawn_tokens_follow_the_filtered_distribution():
+    """Inverse-CDF draws: frequencies match the top-k probabilities, tokens outside the top k never come, the
+    same generator seed gives the same draws, greedy is the argmax."""
+    logits = torch.tensor([[2.0, 0.0, 1.0, -1.0, 0.5, 3.0]]).repeat(40_000, 1)
+    logp = filtered_log_probs(logits, temperature=1.0, top_k=3)  # keeps tokens 5, 0, 2
+    tokens = draw_tokens(logp, generator=torch.Generator().manual_seed(0)).squeeze(1)
+    counts = torch.bincount(tokens, minlength=6).float() / len(tokens)
+    expected = torch.tensor([2.0, 0.0, 1.0, 0.0, 0.0, 3.0]).exp() * torch.tensor([1.0, 0, 1, 0, 0, 1])
+    expected /= expected.sum()  # 0.245, 0, 0.090, 0, 0, 0.665
+    assert torch.allclose(counts, expected, atol=0.01), counts
+    assert counts[[1, 3, 4]].sum() == 0
+    again = draw_tokens(logp, generator=torch.Generator().manual_seed(0)).squeeze(1)
+    assert torch.equal(tokens, again)
+    assert torch.equal(draw_tokens(logp, greedy=True), torch.full((40_000, 1), 5))
 
 
 def test_skill_nll_hand_computed():

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from lerobot_cso.policy.skill_prior import SkillPrior, filtered_log_probs
+from lerobot_cso.policy.skill_prior import SkillPrior, draw_tokens, filtered_log_probs
 
 WeightFormat = Literal["float32", "int8"]
 WEIGHT_FORMATS: tuple[str, ...] = ("float32", "int8")
@@ -100,10 +100,7 @@ class FastSkillSampler:
         for j in range(prior.n_tokens):
             logp = filtered_log_probs(self._step(x, keys, values, pos), temperature, top_k)
             pos += x.shape[1]
-            if greedy:
-                token = logp.argmax(dim=-1, keepdim=True)
-            else:
-                token = torch.multinomial(logp.exp(), 1, generator=generator)
+            token = draw_tokens(logp, greedy, generator)
             tokens.append(token)
             log_probs.append(logp.gather(-1, token))
             if j + 1 < prior.n_tokens:
