@@ -1,4 +1,5 @@
-"""The multi-process pool (one SyncVectorEnv shard per worker) runs exactly the episodes the in-process one does."""
+"""The multi-process pool (one SyncVectorEnv shard per worker, two lanes) runs exactly the episodes the in-process
+one does, and decides each lane's actions on its own while the other lane's chunk runs."""
 
 from __future__ import annotations
 
@@ -12,9 +13,22 @@ SEEDS = range(1_000_000, 1_000_003)
 JOBS = [Job(task, seed, (task, seed)) for task in ("reach-v3", "button-press-v3") for seed in SEEDS]
 
 
-def traces(vectorization: str) -> dict:
+class RecordingExpert(ExpertController):
+    """The scripted experts, noting which slots each ``act`` call decided for."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.calls: list[set[int]] = []
+
+    def act(self, obs, active):
+        self.calls.append(set(np.flatnonzero(active).tolist()))
+        return super().act(obs, active)
+
+
+def traces(vectorization: str, controller: ExpertController | None = None) -> dict:
+    controller = controller or ExpertController(4, noise_std=0.2, seed=3)
     with EnvPool(4, max_steps=40, vectorization=vectorization, workers=2) as pool:
-        return {trace.job.key: trace for _, trace in pool.run(JOBS, ExpertController(4, noise_std=0.2, seed=3))}
+        return {trace.job.key: trace for _, trace in pool.run(JOBS, controller)}
 
 
 @pytest.mark.parametrize("vectorization", ["processes", "async"])
@@ -26,3 +40,16 @@ def test_parallel_pools_replay_the_in_process_episodes(vectorization):
         np.testing.assert_array_equal(got[key].states, trace.states)
         np.testing.assert_array_equal(got[key].actions, trace.actions)
     assert any(t.success for t in expected.values()) and any(t.length == 40 for t in expected.values())
+
+
+def test_the_two_lanes_of_a_sharded_pool_are_decided_in_turn():
+    controller = RecordingExpert(4, noise_std=0.2, seed=3)
+    expected, got = traces("sync"), traces("processes", controller)
+    assert {key: (t.success, t.length) for key, t in got.items()} == {
+        key: (t.success, t.length) for key, t in expected.items()
+    }
+    lanes = [{0, 1}, {2, 3}]
+    assert all(any(call <= lane for lane in lanes) for call in controller.calls)  # one lane per decision
+    firsts = [next(i for i, call in enumerate(controller.calls) if call <= lane) for lane in lanes]
+    assert firsts == [0, 1]  # lane 0 decides, then lane 1 while lane 0's step runs
+    assert sum(call <= lanes[1] for call in controller.calls) >= 40  # lane 1 stepped its own episodes

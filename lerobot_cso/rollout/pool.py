@@ -5,11 +5,13 @@ env factory whose envs speak the same reset protocol (``options``: ``task``, ``p
 
 The vector env runs with ``autoreset_mode=DISABLED``: a slot whose episode ended is parked at once, then reset
 (``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, when one may
-start. The controller returns one action per slot, or a chunk of L actions that the pool executes open-loop
-(:func:`~lerobot_cso.rollout.sharded.step_chunk`). Jobs only start on global steps that are multiples of
-``start_every``; the policy-driven engine sets it to the number of actions per decision and returns chunks of
-that length, so every running episode takes its decisions on the same steps and each decision round is one
-batched policy call. A parked slot costs no
+start. The controller returns one action per slot, or a chunk of L actions that the pool executes open-loop.
+The slots form lanes (:class:`~lerobot_cso.rollout.sharded.ChunkLanes`): one, or two for the ``processes``
+vectorization, which take turns so that one lane's chunk simulates in its workers while the controller decides
+the other's. Jobs only start on steps of their lane that are multiples of ``start_every``; the policy-driven
+engine sets it to the number of actions per decision and returns chunks of that length, so every running
+episode of a lane takes its decisions on the same steps and each decision round of a lane is one batched
+policy call. Which slot runs which job, and when, does not depend on the lanes. A parked slot costs no
 simulation (in a ``SyncVectorEnv`` it costs nothing at all), so the alignment is free for state-only
 rollouts. Jobs are handed out with task affinity (a slot stays on its task while that task has jobs left),
 so that each env builds few MuJoCo models.
@@ -40,7 +42,7 @@ from lerobot_cso.envs.constants import HORIZON, IMAGE_SIZE
 from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, check_cameras
 from lerobot_cso.envs.tasks import check_task
 from lerobot_cso.rollout.backend import Controller, Job, Trace
-from lerobot_cso.rollout.sharded import ShardedVectorEnv, last_step, step_chunk
+from lerobot_cso.rollout.sharded import ChunkLanes, Reset, ShardedVectorEnv
 
 Vectorization = Literal["processes", "sync", "async"]
 VECTORIZATIONS: tuple[str, ...] = ("processes", "sync", "async")
@@ -61,16 +63,17 @@ class _Recorder:
         self.actions: list[np.ndarray] = []
         self.images: dict[str, list[np.ndarray]] = {cam: [] for cam in cameras}
 
-    def add(self, before: dict[str, Any], after: dict[str, Any], slot: int, actions: np.ndarray) -> None:
-        """Record ``actions`` (n, A) executed from observation ``before``; ``after`` holds the observations
-        (L, num_envs, ...) after each step of the chunk, so step j's input is ``after[j - 1]``."""
+    def add(self, before: dict[str, Any], after: dict[str, Any], slot: int, row: int, actions: np.ndarray) -> None:
+        """Record ``actions`` (n, A) executed from observation ``before`` (batched over all slots); ``after``
+        holds the observations (L, lane envs, ...) after each step of the chunk, the slot at ``row``, so step
+        j's input is ``after[j - 1]``."""
         n = len(actions)
         self.states.append(before["agent_pos"][slot][None])
-        self.states.append(after["agent_pos"][: n - 1, slot])
+        self.states.append(after["agent_pos"][: n - 1, row])
         self.actions.append(np.clip(actions, -1.0, 1.0).astype(np.float32))
         for cam in self.cameras:
             self.images[cam].append(before["pixels"][cam][slot][None])
-            self.images[cam].append(after["pixels"][cam][: n - 1, slot])
+            self.images[cam].append(after["pixels"][cam][: n - 1, row])
 
     def trace(self, job: Job, success: bool, record: Any) -> Trace:
         actions = np.concatenate(self.actions)
@@ -166,14 +169,14 @@ class EnvPool:
         self._tasks: list[str | None] = [None] * num_envs  # the task each slot ran last in this run
         self._parked = np.ones(num_envs, dtype=bool)  # persists across runs: a slot that ended must be parked
 
-    def _reset(self, slots: list[int], options: dict[str, Any], seeds: list[int | None] | None = None) -> dict:
+    def _reset(self, slots: list[int], options: dict[str, Any], seeds: list[int | None] | None = None) -> Reset:
+        """The masked reset of ``slots`` (for :func:`~lerobot_cso.rollout.sharded.reset_slots`)."""
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[slots] = True
         seed_list: list[int | None] = [None] * self.num_envs
         for slot, seed in zip(slots, seeds or [None] * len(slots), strict=True):
             seed_list[slot] = seed
-        obs, _ = self.vec.reset(seed=seed_list, options={**options, "reset_mask": mask})
-        return obs
+        return seed_list, {**options, "reset_mask": mask}
 
     def run(
         self,
@@ -194,52 +197,81 @@ class EnvPool:
         # policy batches (float results can depend on a row's batch), and a call is reproducible.
         self._tasks = [None] * self.num_envs
         running: list[tuple[int, Job] | None] = [None] * self.num_envs
+        starting = np.zeros(self.num_envs, dtype=bool)  # reset onto its job, not yet observed
         recorders: list[_Recorder | None] = [None] * self.num_envs
         parked = self._parked
-        obs: dict[str, Any] = {}
+        lanes = ChunkLanes(self.vec)
+        steps = [0] * len(lanes.slots)  # env steps each lane has run in this call
+        in_flight = [False] * len(lanes.slots)
+        chunks: list[np.ndarray | None] = [None] * len(lanes.slots)  # the chunk each lane runs
+        before: list[dict[str, Any]] = [{} for _ in lanes.slots]  # the observation it was chosen from
         bar = tqdm(total=len(jobs), desc=progress, disable=progress is None, leave=False)
-        step = 0
-        while scheduler or any(r is not None for r in running):
-            if scheduler and step % start_every == 0:
-                starting: dict[str, list[tuple[int, int, Job]]] = {}
-                for slot in range(self.num_envs):
-                    entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
-                    if entry is not None:
-                        starting.setdefault(entry[1].task, []).append((slot, *entry))
-                for task, entries in starting.items():
-                    slots = [slot for slot, _, _ in entries]
-                    options = {"task": task, **start_options}
-                    obs = self._reset(slots, options, [job.init_seed for _, _, job in entries])
-                    for slot, index, job in entries:
-                        running[slot] = (index, job)
-                        recorders[slot] = _Recorder(recorded)
-                        parked[slot] = False
-                        self._tasks[slot] = task
-                        controller.start(slot, job)
-            if not scheduler and all(r is None for r in running):
-                break  # the last jobs were skipped
-            to_park = [slot for slot in range(self.num_envs) if running[slot] is None and not parked[slot]]
-            if to_park:
-                obs = self._reset(to_park, {"park": True})
-                parked[to_park] = True
-            active = np.array([r is not None for r in running])
-            actions = controller.act(obs, active)
-            chunk = actions[:, None] if actions.ndim == 2 else actions
-            after, terminated, truncated = step_chunk(self.vec, chunk.astype(np.float32), active)
-            step += chunk.shape[1]
-            ended = terminated | truncated
-            for slot in np.flatnonzero(active):
-                finished = bool(ended[:, slot].any())
-                end = int(np.argmax(ended[:, slot])) + 1 if finished else chunk.shape[1]
-                recorders[slot].add(obs, after, slot, chunk[slot, :end])
-                if finished:
-                    index, job = running[slot]
-                    trace = recorders[slot].trace(job, bool(terminated[:, slot].any()), controller.finish(slot))
-                    running[slot] = recorders[slot] = None
-                    parked[slot] = True  # step_chunk parked it at its end
-                    bar.update()
-                    yield index, trace
-            obs = last_step(after)
+        while True:
+            # The lanes take turns: a lane's results come in and its ended episodes are yielded, then its next
+            # chunk is decided and sent together with the resets that start new episodes in its free slots
+            # (which take their first decision on the lane's next turn); then the next lane, while this one runs.
+            for lane, slots in enumerate(lanes.slots):
+                obs = before[lane]
+                if in_flight[lane]:
+                    result, chunk = lanes.receive(lane), chunks[lane]
+                    in_flight[lane] = False
+                    obs = lanes.observation()
+                    if chunk is not None:
+                        after, terminated, truncated = result
+                        steps[lane] += chunk.shape[1]
+                        ended = terminated | truncated
+                        for row, slot in enumerate(slots):
+                            if running[slot] is None or starting[slot]:
+                                continue
+                            finished = bool(ended[:, row].any())
+                            end = int(np.argmax(ended[:, row])) + 1 if finished else chunk.shape[1]
+                            recorders[slot].add(before[lane], after, slot, row, chunk[row, :end])
+                            if finished:
+                                index, job = running[slot]
+                                success = bool(terminated[:, row].any())
+                                trace = recorders[slot].trace(job, success, controller.finish(slot))
+                                running[slot] = recorders[slot] = None
+                                parked[slot] = True  # the chunk parked it at its end
+                                bar.update()
+                                yield index, trace
+                    starting[slots] = False
+                active = np.zeros(self.num_envs, dtype=bool)
+                active[slots] = [running[slot] is not None for slot in slots]
+                chunk = None
+                if active.any():
+                    actions = controller.act(obs, active)
+                    chunk = (actions[:, None] if actions.ndim == 2 else actions)[slots].astype(np.float32)
+                    end_step = steps[lane] + chunk.shape[1]
+                else:
+                    end_step = steps[lane] + -steps[lane] % start_every  # an idle lane waits for a start step
+                    steps[lane] = end_step
+                resets: list[Reset] = []  # after the chunk, one masked reset per task (one message per worker)
+                if scheduler and end_step % start_every == 0:
+                    new: dict[str, list[tuple[int, int, Job]]] = {}
+                    for slot in slots:
+                        entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
+                        if entry is not None:
+                            new.setdefault(entry[1].task, []).append((slot, *entry))
+                    for task, entries in new.items():
+                        options = {"task": task, **start_options}
+                        seeds = [job.init_seed for _, _, job in entries]
+                        resets.append(self._reset([slot for slot, _, _ in entries], options, seeds))
+                        for slot, index, job in entries:
+                            running[slot] = (index, job)
+                            starting[slot] = True
+                            recorders[slot] = _Recorder(recorded)
+                            parked[slot] = False
+                            self._tasks[slot] = task
+                            controller.start(slot, job)
+                to_park = [int(slot) for slot in slots if running[slot] is None and not parked[slot]]
+                if to_park:
+                    resets.append(self._reset(to_park, {"park": True}))
+                    parked[to_park] = True
+                if chunk is not None or resets:
+                    lanes.send(lane, chunk, None if chunk is None else active[slots], resets)
+                    in_flight[lane], chunks[lane], before[lane] = True, chunk, obs
+            if not scheduler and not any(in_flight):
+                break  # nothing running and nothing left to start (or the last jobs were skipped)
         bar.close()
 
     def close(self) -> None:
