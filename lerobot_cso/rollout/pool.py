@@ -11,7 +11,9 @@ vectorization, which take turns so that one lane's chunk simulates in its worker
 the other's. Jobs only start on steps of their lane that are multiples of ``start_every``; the policy-driven
 engine sets it to the number of actions per decision and returns chunks of that length, so every running
 episode of a lane takes its decisions on the same steps and each decision round of a lane is one batched
-policy call. Which slot runs which job, and when, does not depend on the lanes. A parked slot costs no
+policy call. Which slot runs which job does not depend on the lanes (only ``skip`` may see fewer finished
+episodes of the other lane when a job's turn comes). A new episode takes its first decision on its lane's turn
+after the one that reset it: the reset travels with the lane's chunk. A parked slot costs no
 simulation (in a ``SyncVectorEnv`` it costs nothing at all), so the alignment is free for state-only
 rollouts. Jobs are handed out with task affinity (a slot stays on its task while that task has jobs left),
 so that each env builds few MuJoCo models.
@@ -170,7 +172,7 @@ class EnvPool:
         self._parked = np.ones(num_envs, dtype=bool)  # persists across runs: a slot that ended must be parked
 
     def _reset(self, slots: list[int], options: dict[str, Any], seeds: list[int | None] | None = None) -> Reset:
-        """The masked reset of ``slots`` (for :func:`~lerobot_cso.rollout.sharded.reset_slots`)."""
+        """The masked reset of ``slots``, as :meth:`~lerobot_cso.rollout.sharded.ChunkLanes.send` takes it."""
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[slots] = True
         seed_list: list[int | None] = [None] * self.num_envs
