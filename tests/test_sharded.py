@@ -53,3 +53,16 @@ def test_the_two_lanes_of_a_sharded_pool_are_decided_in_turn():
     firsts = [next(i for i, call in enumerate(controller.calls) if call <= lane) for lane in lanes]
     assert firsts == [0, 1]  # lane 0 decides, then lane 1 while lane 0's step runs
     assert sum(call <= lanes[1] for call in controller.calls) >= 40  # lane 1 stepped its own episodes
+
+
+def test_a_run_left_early_leaves_the_pool_as_good_as_new():
+    expected = traces("sync")
+    with EnvPool(4, max_steps=40, vectorization="processes", workers=2) as pool:
+        run = pool.run(JOBS, ExpertController(4, noise_std=0.2, seed=3))
+        next(run)  # the other lane's chunk is in flight now
+        run.close()
+        got = {trace.job.key: trace for _, trace in pool.run(JOBS, ExpertController(4, noise_std=0.2, seed=3))}
+    assert got.keys() == expected.keys()
+    for key, trace in expected.items():
+        np.testing.assert_array_equal(got[key].states, trace.states)
+        np.testing.assert_array_equal(got[key].actions, trace.actions)

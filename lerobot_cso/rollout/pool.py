@@ -208,72 +208,75 @@ class EnvPool:
         chunks: list[np.ndarray | None] = [None] * len(lanes.slots)  # the chunk each lane runs
         before: list[dict[str, Any]] = [{} for _ in lanes.slots]  # the observation it was chosen from
         bar = tqdm(total=len(jobs), desc=progress, disable=progress is None, leave=False)
-        while True:
-            # The lanes take turns: a lane's results come in and its ended episodes are yielded, then its next
-            # chunk is decided and sent together with the resets that start new episodes in its free slots
-            # (which take their first decision on the lane's next turn); then the next lane, while this one runs.
-            for lane, slots in enumerate(lanes.slots):
-                obs = before[lane]
-                if in_flight[lane]:
-                    result, chunk = lanes.receive(lane), chunks[lane]
-                    in_flight[lane] = False
-                    obs = lanes.observation()
-                    if chunk is not None:
-                        after, terminated, truncated = result
-                        steps[lane] += chunk.shape[1]
-                        ended = terminated | truncated
-                        for row, slot in enumerate(slots):
-                            if running[slot] is None or starting[slot]:
-                                continue
-                            finished = bool(ended[:, row].any())
-                            end = int(np.argmax(ended[:, row])) + 1 if finished else chunk.shape[1]
-                            recorders[slot].add(before[lane], after, slot, row, chunk[row, :end])
-                            if finished:
-                                index, job = running[slot]
-                                success = bool(terminated[:, row].any())
-                                trace = recorders[slot].trace(job, success, controller.finish(slot))
-                                running[slot] = recorders[slot] = None
-                                parked[slot] = True  # the chunk parked it at its end
-                                bar.update()
-                                yield index, trace
-                    starting[slots] = False
-                active = np.zeros(self.num_envs, dtype=bool)
-                active[slots] = [running[slot] is not None for slot in slots]
-                chunk = None
-                if active.any():
-                    actions = controller.act(obs, active)
-                    chunk = (actions[:, None] if actions.ndim == 2 else actions)[slots].astype(np.float32)
-                    end_step = steps[lane] + chunk.shape[1]
-                else:
-                    end_step = steps[lane] + -steps[lane] % start_every  # an idle lane waits for a start step
-                    steps[lane] = end_step
-                resets: list[Reset] = []  # after the chunk, one masked reset per task (one message per worker)
-                if scheduler and end_step % start_every == 0:
-                    new: dict[str, list[tuple[int, int, Job]]] = {}
-                    for slot in slots:
-                        entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
-                        if entry is not None:
-                            new.setdefault(entry[1].task, []).append((slot, *entry))
-                    for task, entries in new.items():
-                        options = {"task": task, **start_options}
-                        seeds = [job.init_seed for _, _, job in entries]
-                        resets.append(self._reset([slot for slot, _, _ in entries], options, seeds))
-                        for slot, index, job in entries:
-                            running[slot] = (index, job)
-                            starting[slot] = True
-                            recorders[slot] = _Recorder(recorded)
-                            parked[slot] = False
-                            self._tasks[slot] = task
-                            controller.start(slot, job)
-                to_park = [int(slot) for slot in slots if running[slot] is None and not parked[slot]]
-                if to_park:
-                    resets.append(self._reset(to_park, {"park": True}))
-                    parked[to_park] = True
-                if chunk is not None or resets:
-                    lanes.send(lane, chunk, None if chunk is None else active[slots], resets)
-                    in_flight[lane], chunks[lane], before[lane] = True, chunk, obs
-            if not scheduler and not any(in_flight):
-                break  # nothing running and nothing left to start (or the last jobs were skipped)
+        try:
+            while True:
+                # The lanes take turns: a lane's results come in and its ended episodes are yielded, then its next
+                # chunk is decided and sent together with the resets that start new episodes in its free slots
+                # (which take their first decision on the lane's next turn); then the next lane, while this one runs.
+                for lane, slots in enumerate(lanes.slots):
+                    obs = before[lane]
+                    if in_flight[lane]:
+                        result, chunk = lanes.receive(lane), chunks[lane]
+                        in_flight[lane] = False
+                        obs = lanes.observation()
+                        if chunk is not None:
+                            after, terminated, truncated = result
+                            steps[lane] += chunk.shape[1]
+                            ended = terminated | truncated
+                            for row, slot in enumerate(slots):
+                                if running[slot] is None or starting[slot]:
+                                    continue
+                                finished = bool(ended[:, row].any())
+                                end = int(np.argmax(ended[:, row])) + 1 if finished else chunk.shape[1]
+                                recorders[slot].add(before[lane], after, slot, row, chunk[row, :end])
+                                if finished:
+                                    index, job = running[slot]
+                                    success = bool(terminated[:, row].any())
+                                    trace = recorders[slot].trace(job, success, controller.finish(slot))
+                                    running[slot] = recorders[slot] = None
+                                    parked[slot] = True  # the chunk parked it at its end
+                                    bar.update()
+                                    yield index, trace
+                        starting[slots] = False
+                    active = np.zeros(self.num_envs, dtype=bool)
+                    active[slots] = [running[slot] is not None for slot in slots]
+                    chunk = None
+                    if active.any():
+                        actions = controller.act(obs, active)
+                        chunk = (actions[:, None] if actions.ndim == 2 else actions)[slots].astype(np.float32)
+                        end_step = steps[lane] + chunk.shape[1]
+                    else:
+                        end_step = steps[lane] + -steps[lane] % start_every  # an idle lane waits for a start step
+                        steps[lane] = end_step
+                    resets: list[Reset] = []  # after the chunk, one masked reset per task (one message per worker)
+                    if scheduler and end_step % start_every == 0:
+                        new: dict[str, list[tuple[int, int, Job]]] = {}
+                        for slot in slots:
+                            entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
+                            if entry is not None:
+                                new.setdefault(entry[1].task, []).append((slot, *entry))
+                        for task, entries in new.items():
+                            options = {"task": task, **start_options}
+                            seeds = [job.init_seed for _, _, job in entries]
+                            resets.append(self._reset([slot for slot, _, _ in entries], options, seeds))
+                            for slot, index, job in entries:
+                                running[slot] = (index, job)
+                                starting[slot] = True
+                                recorders[slot] = _Recorder(recorded)
+                                parked[slot] = False
+                                self._tasks[slot] = task
+                                controller.start(slot, job)
+                    to_park = [int(slot) for slot in slots if running[slot] is None and not parked[slot]]
+                    if to_park:
+                        resets.append(self._reset(to_park, {"park": True}))
+                        parked[to_park] = True
+                    if chunk is not None or resets:
+                        lanes.send(lane, chunk, None if chunk is None else active[slots], resets)
+                        in_flight[lane], chunks[lane], before[lane] = True, chunk, obs
+                if not scheduler and not any(in_flight):
+                    break  # nothing running and nothing left to start (or the last jobs were skipped)
+        finally:
+            lanes.drain()  # a run left early (a closed generator, an error) leaves no answer in a worker's pipe
         bar.close()
 
     def close(self) -> None:

@@ -23,6 +23,7 @@ not gathered.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -252,6 +253,13 @@ class ChunkLanes:
         if isinstance(self.vec, ShardedVectorEnv):
             return self.vec.receive(self._shards[lane])
         return self._done.pop(lane)
+
+    def drain(self) -> None:
+        """Wait for every lane's work in flight and drop it (workers already gone are passed over)."""
+        if isinstance(self.vec, ShardedVectorEnv):
+            with contextlib.suppress(EOFError, OSError):
+                self.vec.receive(range(len(self.vec.shards)))
+        self._done.clear()
 
     def observation(self) -> Any:
         """The batched last observation of every env, after the lanes' received work."""
