@@ -64,6 +64,9 @@ class PipelineConfig:
     # CPU threads of torch in every stage (lerobot-train too, via OMP_NUM_THREADS); null: torch's default.
     # 1 is much faster on a few shared cores, where spinning threads wait for each other.
     torch_threads: int | None = None
+    # CPU threads of torch while a stage trains (IL's lerobot-train, R-SFT's fine-tune, SPO's updates), in place
+    # of torch_threads; it replaces rsft.train_threads and spo.train_threads. null: torch_threads throughout.
+    train_threads: int | None = None
     # Training seed of the whole run: when set, it replaces demos.seed, rsft.seed and spo.seed, and il.seed
     # becomes 1000 + seed (evaluation states stay those of eval.seeds). null: each section's own seed.
     seed: int | None = None
@@ -119,8 +122,9 @@ class Pipeline:
             self.tasks = world_for(cfg.tasks).resolve_tasks(cfg.tasks)
         except ValueError as e:
             raise UsageError(str(e)) from None
-        if cfg.torch_threads is not None and cfg.torch_threads < 1:
-            raise UsageError(f"torch_threads must be >= 1 or null, got {cfg.torch_threads}")
+        for name in ("torch_threads", "train_threads"):
+            if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
+                raise UsageError(f"{name} must be >= 1 or null, got {getattr(cfg, name)}")
         self.seconds: dict[str, float] = {}
         self.validate()
 
@@ -133,15 +137,24 @@ class Pipeline:
             self.cfg.eval, tasks=self.cfg.tasks, output_dir=self.out / "eval" / name, policy=policy
         )
 
+    def train_threads(self) -> int | None:
+        """Threads of the IL stage's lerobot-train."""
+        return self.cfg.train_threads or self.cfg.torch_threads
+
     def rsft_config(self, policy: PreTrainedConfig) -> RSFTConfig:
         cfg = dataclasses.replace(self.cfg.rsft, tasks=self.cfg.tasks, output_dir=self.out / "rsft", policy=policy)
+        if self.cfg.train_threads:
+            cfg = dataclasses.replace(cfg, train_threads=self.cfg.train_threads)
         if cfg.demo_fraction:  # the demonstrations IL trained on
             demos = demos_stage(self.demos_config()).output()
             cfg = dataclasses.replace(cfg, demos_root=demos, demos_repo_id=self.cfg.demos.repo_id)
         return cfg
 
     def spo_config(self, policy: PreTrainedConfig) -> SPOConfig:
-        return dataclasses.replace(self.cfg.spo, tasks=self.cfg.tasks, output_dir=self.out / "spo", policy=policy)
+        cfg = dataclasses.replace(self.cfg.spo, tasks=self.cfg.tasks, output_dir=self.out / "spo", policy=policy)
+        if self.cfg.train_threads:
+            cfg = dataclasses.replace(cfg, train_threads=self.cfg.train_threads)
+        return cfg
 
     def validate(self) -> None:
         """Check every section before anything runs, with a stand-in for the policies still to be trained."""
@@ -212,7 +225,7 @@ class Pipeline:
         self.out.mkdir(parents=True, exist_ok=True)
         demos = demos_stage(self.demos_config())
         self.execute(demos)
-        il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.cfg.torch_threads)
+        il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.train_threads())
         self.execute(il, after="demos")
         rates = {"il": self.evaluate("il", il.policy(), "il")}
         rsft = RSFTStage(self.rsft_config(policy_config(il.policy())))

@@ -12,11 +12,14 @@ trained with, ``--teleop.type=...`` optionally drives the arm while the operator
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import lerobot.scripts.lerobot_record  # noqa: F401  (registers LeRobot's robots, teleoperators and cameras)
+import torch
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
@@ -50,6 +53,10 @@ class RolloutStageConfig(PolicyPathConfig):
     vectorization: str = "processes"
     # Episode cap of the rollouts (a failure runs to the cap); null: the world's horizon.
     max_steps: int | None = None
+    # torch's CPU threads while the stage trains (R-SFT's fine-tune, SPO's updates; evaluation does not train);
+    # null: the process's setting. The rollouts' env workers idle meanwhile, so on 2 cores 2 threads train
+    # faster than 1 (docs/cso-on-cpu.md); the decisions during rollouts keep the process's setting.
+    train_threads: int | None = None
     # A LeRobot robot to roll out on (with an operator) instead of a simulated world.
     robot: RobotConfig | None = None
     # Optional teleoperator that moves the robot while the operator arranges each scene.
@@ -70,7 +77,18 @@ class RolloutStageConfig(PolicyPathConfig):
         """The settings the stage's output depends on: not the pipeline's fields nor ``display_data``, and the
         robot's settings only when it runs on a robot."""
         robot = () if self.robot is not None else ROBOT_FIELDS
-        return settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", *robot))
+        return settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", "train_threads", *robot))
+
+    @contextmanager
+    def training(self) -> Iterator[None]:
+        """A block run with ``train_threads`` torch threads (unchanged when null), restored afterwards."""
+        before = torch.get_num_threads()
+        if self.train_threads is not None:
+            torch.set_num_threads(self.train_threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
 
     def horizon(self) -> int:
         """The episode cap of the rollouts: ``max_steps``, or the world's horizon."""
@@ -94,6 +112,8 @@ class RolloutStageConfig(PolicyPathConfig):
             raise UsageError(str(e)) from None
         if self.num_envs < 1:
             raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
+        if self.train_threads is not None and self.train_threads < 1:
+            raise UsageError(f"train_threads must be >= 1 or null, got {self.train_threads}")
         if self.vectorization not in VECTORIZATIONS:
             raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:

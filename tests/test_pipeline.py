@@ -10,6 +10,7 @@ from pathlib import Path
 
 import draccus
 import pytest
+import torch
 
 from lerobot_cso.cli import main
 from lerobot_cso.pipeline import Pipeline, PipelineConfig
@@ -100,6 +101,8 @@ def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
         (["--il.n_autoencoder_steps=200"], "il.n_autoencoder_steps must be in [0, il.steps=200)"),
         (["--spo.group_size=1"], "group_size must be >= 2"),
         (["--tasks=reach-v9"], "unknown MetaWorld task 'reach-v9'"),
+        (["--train_threads=0"], "train_threads must be >= 1 or null, got 0"),
+        (["--spo.train_threads=0"], "train_threads must be >= 1 or null, got 0"),
     ],
 )
 def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path, args, message, capsys, monkeypatch):
@@ -116,6 +119,23 @@ def test_top_level_seed_reaches_every_training_stage(tiny_config):
     assert (seeded.demos.seed, seeded.il.seed, seeded.rsft.seed, seeded.spo.seed) == (3, 1003, 3, 3)
     unseeded = Pipeline(cfg).cfg
     assert (unseeded.il.seed, unseeded.spo.seed) == (cfg.il.seed, cfg.spo.seed)
+
+
+def test_train_threads_reach_every_training_stage_but_no_spec(tiny_config):
+    with open(tiny_config) as f:
+        cfg = draccus.load(PipelineConfig, f)
+    plain, threaded = Pipeline(cfg), Pipeline(dataclasses.replace(cfg, train_threads=2))
+    assert (plain.train_threads(), threaded.train_threads()) == (1, 2)  # IL's lerobot-train: torch_threads by default
+    for make in ("rsft_config", "spo_config"):
+        base, other = getattr(plain, make)(None), getattr(threaded, make)(None)
+        assert (base.train_threads, other.train_threads) == (None, 2)
+        assert other.stage_spec() == base.stage_spec()  # a finished stage is not redone for another thread count
+    torch.set_num_threads(1)
+    with other.training():
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == 1
+    with base.training():  # null: the process's setting
+        assert torch.get_num_threads() == 1
 
 
 def test_robot_only_settings_do_not_change_a_simulated_stages_spec(tiny_config):

@@ -427,7 +427,8 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = Rollou
         print(report_table(report))
         if cfg.push_to_hub:
             LeRobotDataset(cfg.repo_id, root=cfg.output_dir / "buffer").push_to_hub()
-    finetune(cfg, cfg.output_dir / "buffer")
+    with cfg.training():
+        finetune(cfg, cfg.output_dir / "buffer")
     return report
 
 

@@ -382,7 +382,8 @@ def run_spo(
             groups, stats, cursor = collect_groups(cfg, tasks, engine, cursor, round_seed, iteration, skip_until)
             generator.manual_seed(round_seed)
             if groups:
-                stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
+                with cfg.training():
+                    stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
             else:  # every group was uniform: nothing to learn from this iteration
                 stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
