@@ -22,6 +22,9 @@ again and resumes by itself (demos and R-SFT from their journals, SPO from its l
 ``lerobot-train --resume=true`` from its last checkpoint). A stage whose settings, or whose upstream stage's
 completion, differ from the record is refused (evaluations are simply redone), so stale results are never
 mixed with new ones.
+
+The rollout stages (the evaluations, R-SFT, SPO) run inside :func:`~lerobot_cso.rollout.pool.kept_pools`: stages
+with the same rollout settings share one env pool, whose worker processes and MuJoCo models are built once.
 """
 
 import dataclasses
@@ -47,6 +50,7 @@ from lerobot_cso.errors import UsageError
 from lerobot_cso.evaluation import EvalConfig, EvalStage
 from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
+from lerobot_cso.rollout.pool import kept_pools
 from lerobot_cso.rollout.world import world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, Stage
 
@@ -227,13 +231,14 @@ class Pipeline:
         self.execute(demos)
         il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.train_threads())
         self.execute(il, after="demos")
-        rates = {"il": self.evaluate("il", il.policy(), "il")}
-        rsft = RSFTStage(self.rsft_config(policy_config(il.policy())))
-        self.execute(rsft, after="il")
-        rates["rsft"] = self.evaluate("rsft", rsft.policy(), "rsft")
-        spo = SPOStage(self.spo_config(policy_config(rsft.policy())))
-        self.execute(spo, after="rsft")
-        rates["cso"] = self.evaluate("cso", spo.policy(), "spo")
+        with kept_pools():  # the rollout stages share their env pools (workers and models built once)
+            rates = {"il": self.evaluate("il", il.policy(), "il")}
+            rsft = RSFTStage(self.rsft_config(policy_config(il.policy())))
+            self.execute(rsft, after="il")
+            rates["rsft"] = self.evaluate("rsft", rsft.policy(), "rsft")
+            spo = SPOStage(self.spo_config(policy_config(rsft.policy())))
+            self.execute(spo, after="rsft")
+            rates["cso"] = self.evaluate("cso", spo.policy(), "spo")
         table = results_table(self.tasks, rates)
         results = {
             "tasks": self.tasks,

@@ -14,7 +14,7 @@ from metaworld_fixtures import load_policy, shared_policy
 from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.rollout.engine import Episode, RolloutEngine, Sampling
 from lerobot_cso.rollout.expert import ExpertController
-from lerobot_cso.rollout.pool import EnvPool, Job
+from lerobot_cso.rollout.pool import EnvPool, Job, kept_pools, open_pool
 
 STATES = [("reach-v3", 11), ("button-press-v3", 12)]
 MAX_STEPS = 48
@@ -117,6 +117,28 @@ def test_async_env_workers_give_the_same_episodes_as_sync():
     for i in range(len(jobs)):
         np.testing.assert_array_equal(traces["sync"][i].states, traces["async"][i].states)
         np.testing.assert_array_equal(traces["sync"][i].actions, traces["async"][i].actions)
+
+
+def test_kept_pools_serve_later_stages_from_the_same_open_pool(loaded):
+    """Inside kept_pools, a stage's close leaves its pool (and its worker processes) running for the next stage
+    with the same arguments, which gets the same episodes; other arguments get another pool; all close at the end."""
+    greedy = Sampling(greedy=True)
+    with kept_pools():
+        first = open_pool(3, max_steps=MAX_STEPS, workers=2)
+        with RolloutEngine(*loaded, first, task_description) as stage:
+            episodes = stage.rollout(STATES, k=2, sampling=greedy).episodes
+        second = open_pool(3, max_steps=MAX_STEPS, workers=2)
+        other = open_pool(3, max_steps=MAX_STEPS - 1, workers=2)
+        assert second.pool is first.pool and other.pool is not first.pool
+        workers = first.pool.vec._processes
+        assert all(p.is_alive() for p in workers)
+        with RolloutEngine(*loaded, second, task_description) as stage:
+            assert_same_episodes(episodes, stage.rollout(STATES, k=2, sampling=greedy).episodes)
+    for p in workers:
+        p.join(timeout=10)
+    assert not any(p.is_alive() for p in [*workers, *other.pool.vec._processes])
+    with open_pool(2, max_steps=MAX_STEPS, vectorization="sync") as outside:  # outside the block: a new pool
+        assert isinstance(outside, EnvPool)
 
 
 def test_the_pool_asks_skip_when_a_jobs_turn_comes_and_runs_no_skipped_job():

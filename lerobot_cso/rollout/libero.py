@@ -106,7 +106,7 @@ class Libero:
         return list(range(count))
 
     def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
-        from lerobot_cso.rollout.pool import EnvPool
+        from lerobot_cso.rollout.pool import open_pool
 
         env = _env()
         features = getattr(getattr(settings, "policy", None), "input_features", None) or {}
@@ -115,12 +115,12 @@ class Libero:
         max_steps = getattr(settings, "max_steps", None)  # None: each task's suite horizon
         first = self.resolve_tasks(settings.tasks)[0]  # each job resets its slot onto its own task
         factory = partial(env.CSOLiberoEnv, first, tuple(cameras), image_size, max_steps)
-        return EnvPool(
+        return open_pool(
             settings.num_envs,
             cameras,
-            image_size,
-            settings.horizon(),
-            settings.vectorization,
+            image_size=image_size,
+            max_steps=settings.horizon(),
+            vectorization=settings.vectorization,
             env_factory=factory,
             check_task=env.parse_task,
             frames="all" if settings.records_frames else "decisions",

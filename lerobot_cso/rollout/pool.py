@@ -22,6 +22,10 @@ so that each env builds few MuJoCo models.
 each stepping its shard in a ``SyncVectorEnv`` (:class:`~lerobot_cso.rollout.sharded.ShardedVectorEnv`);
 ``"sync"`` steps all envs in this process; ``"async"`` is gymnasium's ``AsyncVectorEnv``, one process per env.
 
+Inside :func:`kept_pools` (the pipeline's rollout stages run there), :func:`open_pool` hands out one pool per set
+of arguments and keeps it open when a stage closes it: the stages then start their worker processes and build
+their MuJoCo models once instead of once each.
+
 ``frames="decisions"`` asks the envs to render cameras only on the steps where episodes take decisions
 (``render_every=start_every``) and records no images in the traces: what evaluation and SPO need, which keep
 only the policy's contexts. ``"all"`` (default) records every frame, as an R-SFT buffer needs.
@@ -32,6 +36,7 @@ from __future__ import annotations
 import os
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from functools import partial
 from typing import Any, Literal
 
@@ -43,7 +48,7 @@ from tqdm import tqdm
 from lerobot_cso.envs.constants import HORIZON, IMAGE_SIZE
 from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, check_cameras
 from lerobot_cso.envs.tasks import check_task
-from lerobot_cso.rollout.backend import Controller, Job, Trace
+from lerobot_cso.rollout.backend import Controller, Job, RolloutBackend, Trace
 from lerobot_cso.rollout.sharded import ChunkLanes, Reset, ShardedVectorEnv
 
 Vectorization = Literal["processes", "sync", "async"]
@@ -287,3 +292,54 @@ class EnvPool:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+_kept: dict[tuple[Any, ...], EnvPool] | None = None  # the pools kept open by kept_pools(), by their arguments
+
+
+def _argument_key(value: Any) -> Any:
+    """A hashable stand-in for a pool argument: a ``functools.partial`` by its function and arguments."""
+    if isinstance(value, partial):
+        return (value.func, value.args, tuple(sorted(value.keywords.items())))
+    return tuple(value) if isinstance(value, list | tuple) else value
+
+
+class _KeptPool:
+    """A kept pool as a stage sees it: the stage's ``close`` leaves it open for the next stage."""
+
+    def __init__(self, pool: EnvPool) -> None:
+        self.pool = pool
+        self.num_envs = pool.num_envs
+
+    def run(self, *args: Any, **kwargs: Any) -> Iterator[tuple[int, Trace]]:
+        return self.pool.run(*args, **kwargs)
+
+    def close(self) -> None:
+        """Nothing: :func:`kept_pools` closes the pool when its block ends."""
+
+
+@contextmanager
+def kept_pools() -> Iterator[None]:
+    """A block in which :func:`open_pool` keeps every pool it builds, for the block's later stages; all are
+    closed when it ends."""
+    global _kept
+    if _kept is not None:
+        yield  # nested: the outer block keeps them
+        return
+    _kept = {}
+    try:
+        yield
+    finally:
+        pools, _kept = list(_kept.values()), None
+        for pool in pools:
+            pool.close()
+
+
+def open_pool(num_envs: int, cameras: Sequence[str] = (), **kwargs: Any) -> RolloutBackend:
+    """An :class:`EnvPool` with these arguments: a new one, or inside :func:`kept_pools` the one kept for them."""
+    if _kept is None:
+        return EnvPool(num_envs, cameras, **kwargs)
+    key = (num_envs, tuple(cameras), *((name, _argument_key(v)) for name, v in sorted(kwargs.items())))
+    if key not in _kept:
+        _kept[key] = EnvPool(num_envs, cameras, **kwargs)
+    return _KeptPool(_kept[key])

@@ -68,7 +68,7 @@ class SimWorld(World, Protocol):
 
 
 class MetaWorld:
-    """MetaWorld v3: seeded initial states, a pool of vector envs (:class:`~lerobot_cso.rollout.pool.EnvPool`)."""
+    """MetaWorld v3: seeded initial states, a pool of vector envs (:func:`~lerobot_cso.rollout.pool.open_pool`)."""
 
     name = "metaworld"
     robot_type = "sawyer"
@@ -93,9 +93,9 @@ class MetaWorld:
         return seeds.eval_seeds(count, eval_seed)
 
     def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
-        from lerobot_cso.rollout.pool import EnvPool
+        from lerobot_cso.rollout.pool import open_pool
 
-        return EnvPool(settings.num_envs, cameras, max_steps=settings.horizon(), vectorization=settings.vectorization)
+        return open_pool(settings.num_envs, cameras, max_steps=settings.horizon(), vectorization=settings.vectorization)
 
 
 def world_for(tasks: str) -> SimWorld:
