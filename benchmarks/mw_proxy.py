@@ -10,9 +10,10 @@ SPO run are counted and printed.
 
 Each finished (method, seed) is written at once to ``--results`` (default
 ``benchmarks/results/mw_proxy.json``, committed with the measured run), and skipped when the command is run
-again, from this clone or another; unfinished stages resume from ``--work`` (their own records).
+again, from this clone or another; unfinished stages resume from ``--work`` (their own records). All the
+rollout stages of a run share their env pools (:func:`~lerobot_cso.rollout.pool.kept_pools`), as in the pipeline.
 
-    python benchmarks/mw_proxy.py             # configs/mw_proxy.yaml (the demo's recipe, 20 SPO iterations), seeds 0-2
+    python benchmarks/mw_proxy.py             # the demo's config (configs/metaworld_demo.yaml), seeds 0-2
     python benchmarks/mw_proxy.py --seeds=0   # one seed
     python benchmarks/mw_proxy.py --methods=il,rsft,cso   # the pipelines of every seed first
 """
@@ -34,6 +35,7 @@ from lerobot_cso.cso.spo import run_spo
 from lerobot_cso.durable import write_atomic
 from lerobot_cso.evaluation import evaluate
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
+from lerobot_cso.rollout.pool import kept_pools
 from lerobot_cso.stage import settings_spec
 
 METHODS = ("il", "rsft", "spo_only", "cso", "token", "trajectory", "ript")
@@ -208,7 +210,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", type=Path, default=Path("configs/mw_proxy.yaml"))
+    parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--methods", default=",".join(METHODS), help="a subset runs first (il, rsft, cso always)")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
@@ -222,8 +224,9 @@ def main() -> int:
     methods = tuple(args.methods.split(","))
     if unknown := sorted(set(methods) - set(METHODS)):
         parser.error(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
-    for seed in (int(s) for s in args.seeds.split(",")):
-        run_seed(cfg, seed, args.work, results, args.results, methods)
+    with kept_pools():
+        for seed in (int(s) for s in args.seeds.split(",")):
+            run_seed(cfg, seed, args.work, results, args.results, methods)
     results["wall_seconds_this_run"] = time.perf_counter() - started
     save(args.results, results)
     plot(results, args.results.with_suffix(".png"))

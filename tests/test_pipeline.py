@@ -204,7 +204,7 @@ def test_more_iterations_continue_a_finished_stage_and_any_other_change_is_refus
 
 
 def test_committed_mw_proxy_results_resume_with_their_own_config():
-    """benchmarks/results/mw_proxy.json is resumable from configs/mw_proxy.yaml: its recorded config is that file's
+    """benchmarks/results/mw_proxy_s7.json is resumable from configs/mw_proxy.yaml: its recorded config is that file's
     spec (settings added later, at their behave-as-before values, left out); another config is refused."""
     import importlib.util
 
@@ -212,7 +212,7 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
     spec = importlib.util.spec_from_file_location("mw_proxy", root / "benchmarks" / "mw_proxy.py")
     mw_proxy = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mw_proxy)
-    results = root / "benchmarks" / "results" / "mw_proxy.json"
+    results = root / "benchmarks" / "results" / "mw_proxy_s7.json"
 
     def config(name: str, **changes) -> dict:
         with open(root / "configs" / name) as f:
