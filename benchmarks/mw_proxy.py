@@ -47,7 +47,7 @@ SPO_RUNS = {
 }
 # Settings added after results were written, at the values that behave as before they existed: left out of
 # the spec, so those results stay valid (another value is another config).
-LATER_SETTINGS = {"stop_state_at_cap": False, "train_threads": None}
+LATER_SETTINGS = {"stop_state_at_cap": False, "train_threads": None, "advantage_weighted": False}
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 

@@ -46,9 +46,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "cap2_demos50": {"max_successes_per_state": 2, "demo_fraction": 0.5},
     "cap2_lr3e4": {"max_successes_per_state": 2, "lr": 3e-4, "min_lr": 3e-5},
     "cap2_stop": {"max_successes_per_state": 2, "stop_state_at_cap": True},
+    "cap2_adv": {"max_successes_per_state": 2, "advantage_weighted": True},
 }
 # Variants that differ from another only in the fine-tune start from a copy of its collection (same spec).
-COLLECTION_FROM = {"cap2_demos50": "cap2", "cap2_lr3e4": "cap2"}
+COLLECTION_FROM = {"cap2_demos50": "cap2", "cap2_lr3e4": "cap2", "cap2_adv": "cap2"}
 
 
 def timed_rsft(

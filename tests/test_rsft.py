@@ -4,6 +4,7 @@ Eq. 6 fine-tuning with frozen-encoder checkpoint, and pushing the buffer to a st
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,52 @@ def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collect
         not torch.equal(a, b) for a, b in zip(before.encoders.parameters(), after.encoders.parameters(), strict=True)
     ]
     assert any(changed)  # the whole policy was fine-tuned before the freeze
+
+
+def test_advantage_weighted_finetune_draws_successes_by_their_states_eq8_advantage(
+    buffer, collected, il_policy, tmp_path, capsys
+):
+    """Eq. 8 of a kept success in its 4-attempt group, by hand: reach S+1 (2 of 4 succeed) 0.5, S+2 (4 of 4) 0;
+    button S (1 of 4) 0.75, S+2 (4 of 4) 0. The weighted fine-tune never draws the always-solved states'
+    decisions, so it learns their tokens less than the uniform one does, and the others' at least as well."""
+    cfg, journal, _ = collected
+    states = {t: journal.states(t) for t in TASKS}
+    tasks, seeds = ["reach-v3", "reach-v3", "button-press-v3", "button-press-v3"], [S + 1, S + 2, S, S + 2]
+    weights = rsft.success_advantages(tasks, seeds, states)
+    torch.testing.assert_close(weights, torch.tensor([0.5, 0.0, 0.75, 0.0], dtype=torch.float64))
+
+    ds = LeRobotDataset(cfg.repo_id, root=buffer)
+    table = ds.hf_dataset.with_format("torch")[:]
+    rows = torch.flatten(torch.nonzero(table[SKILL_START_KEY].reshape(-1) == 1))
+    solved = table[rsft.SEED_KEY].reshape(-1)[rows] == S + 2  # the states solved on all 4 attempts, both tasks
+    assert int(solved.sum()) == 9  # 3 of the 6 kept episodes, 3 decisions each
+    before, pre, _ = load_policy(il_policy)
+    batch = pre({"observation.state": table["observation.state"][rows], "task": [ds[int(i)]["task"] for i in rows]})
+    tokens = table[SKILL_TOKENS_KEY][rows]
+
+    def nll_drop(**kw) -> torch.Tensor:
+        """How much the fine-tune lowers each decision's NLL (a fine-tune from the collection's journal)."""
+        out = tmp_path / ("_".join(kw) or "uniform")
+        shutil.copytree(cfg.output_dir / "journal", out / "journal")
+        after = load_policy(rsft.finetune(dataclasses.replace(cfg, output_dir=out, **kw), buffer))[0]
+        with torch.no_grad():
+            nll = [-p.eval().token_logprobs(p.encode_context(batch), tokens).mean(-1) for p in (before, after)]
+        return nll[0] - nll[1]
+
+    uniform = nll_drop()
+    capsys.readouterr()
+    weighted = nll_drop(advantage_weighted=True)
+    assert "R-SFT fine-tune: 9 of 18 decisions have weight > 0" in capsys.readouterr().out
+    # Measured: solved states' NLL drop 1.12 (uniform) vs 0.05 (weighted); the others' 1.12 vs 1.46.
+    assert weighted[solved].mean() < uniform[solved].mean() - 0.5
+    assert weighted[~solved].mean() > uniform[~solved].mean()
+
+    always = tmp_path / "always"
+    every = make_cfg(il_policy, always, advantage_weighted=True)
+    rsft.collect(every, list(TASKS), ScriptedEngine(lambda *_: True), rsft.Journal(always / "journal", every.spec()))
+    solved_buffer = rsft.write_buffer(every, list(TASKS), rsft.Journal(always / "journal", every.spec()), n_tokens=8)
+    with pytest.raises(UsageError, match="every kept success is from a state solved on all its attempts"):
+        rsft.finetune(every, solved_buffer)
 
 
 def test_finetune_mixes_in_demonstration_frames_with_their_autoencoder_tokens(

@@ -85,6 +85,10 @@ class RSFTConfig(RolloutStageConfig):
     batch_size: int = 256
     lr: float = 1e-4
     min_lr: float = 1e-5
+    # Not in the paper, whose Eq. 6 weighs every kept success alike: each success is drawn in proportion to its
+    # Eq. 8 advantage in its state's N-strikes group, 1 − successes / attempts, so successes of states the policy
+    # solves on every attempt are not drawn at all and those of states it rarely solves are drawn most.
+    advantage_weighted: bool = False
     # Not in the paper, whose fine-tune reads the buffer alone: this fraction of each epoch's decisions are frames
     # of the IL demonstrations (the LeRobotDataset ``demos_repo_id`` at ``demos_root``; the pipeline's own demos
     # there), each with the frozen autoencoder's tokens of its action chunk, the targets IL trained on.
@@ -309,6 +313,17 @@ class DecisionItems(torch.utils.data.Dataset):
         return item
 
 
+def success_advantages(
+    tasks: list[str], seeds: list[int], states: dict[str, dict[int, dict[str, int]]]
+) -> torch.Tensor:
+    """Eq. 8 for a kept success: R − R̄ of its state's N-strikes group = 1 − successes / attempts, per decision
+    (``tasks[i]``, ``seeds[i]``: the state of decision ``i``; ``states``: the collection's records per task)."""
+    return torch.tensor(
+        [1.0 - states[t][s]["successes"] / states[t][s]["attempts"] for t, s in zip(tasks, seeds, strict=True)],
+        dtype=torch.float64,
+    )
+
+
 def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
     """``count`` demonstration frames (drawn with R-SFT's seed) tokenised by the frozen autoencoder."""
     if not (cfg.demos_root / "meta" / "info.json").is_file():
@@ -352,11 +367,26 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
         print(f"R-SFT fine-tune: {len(starts)} buffer decisions + {len(demos)} demonstration frames", flush=True)
         items = torch.utils.data.ConcatDataset([DecisionItems(items, keys), demos])
     generator = torch.Generator().manual_seed(cfg.seed)
+    sampler = None
+    if cfg.advantage_weighted:
+        journal = Journal(cfg.output_dir / "journal", cfg.spec())
+        columns = ds.hf_dataset.select(starts.tolist())
+        tasks = [str(t) for t in columns[TASK_KEY]]
+        weights = success_advantages(
+            tasks, [int(np.ravel(s)[0]) for s in columns[SEED_KEY]], {t: journal.states(t) for t in set(tasks)}
+        )
+        if not weights.sum() > 0:
+            raise UsageError("--advantage_weighted=true: every kept success is from a state solved on all its attempts")
+        print(f"R-SFT fine-tune: {int((weights > 0).sum())} of {len(weights)} decisions have weight > 0", flush=True)
+        if cfg.demo_fraction:  # each demonstration frame at the buffer's mean weight keeps their share
+            weights = torch.cat([weights, weights.mean().repeat(len(items) - len(weights))])
+        sampler = torch.utils.data.WeightedRandomSampler(weights, len(items), replacement=True, generator=generator)
     loader = torch.utils.data.DataLoader(
         items,
         batch_size=cfg.batch_size,
-        shuffle=True,
-        generator=generator,
+        shuffle=sampler is None,
+        sampler=sampler,
+        generator=generator if sampler is None else None,
     )
     optimizer_cfg = replace(policy.config.get_optimizer_preset(), lr=cfg.lr)
     scheduler_cfg = replace(
