@@ -204,22 +204,35 @@ def test_more_iterations_continue_a_finished_stage_and_any_other_change_is_refus
 
 
 def test_committed_mw_proxy_results_resume_with_their_own_config():
-    """benchmarks/results/mw_proxy_s7.json is resumable from configs/mw_proxy.yaml: its recorded config is that file's
-    spec (settings added later, at their behave-as-before values, left out); another config is refused."""
+    """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default) and
+    mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded config is that file's spec (settings added later,
+    at their behave-as-before values, left out); another config is refused."""
     import importlib.util
 
     root = Path(__file__).resolve().parents[1]
     spec = importlib.util.spec_from_file_location("mw_proxy", root / "benchmarks" / "mw_proxy.py")
     mw_proxy = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mw_proxy)
-    results = root / "benchmarks" / "results" / "mw_proxy_s7.json"
 
     def config(name: str, **changes) -> dict:
         with open(root / "configs" / name) as f:
             cfg = dataclasses.replace(draccus.load(PipelineConfig, f), **changes)
         return json.loads(json.dumps(mw_proxy.config_spec(cfg), default=str))
 
-    assert mw_proxy.load(results, "test", config("mw_proxy.yaml"))["methods"]["cso"]["per_seed"]
-    for other in (config("mw_proxy.yaml", train_threads=2), config("metaworld_demo.yaml")):
-        with pytest.raises(SystemExit, match="holds results of another config"):
-            mw_proxy.load(results, "test", other)
+    for results, own, others in (
+        (
+            "mw_proxy.json",
+            "metaworld_demo.yaml",
+            [config("metaworld_demo.yaml", train_threads=1), config("mw_proxy.yaml")],
+        ),
+        (
+            "mw_proxy_s7.json",
+            "mw_proxy.yaml",
+            [config("mw_proxy.yaml", train_threads=2), config("metaworld_demo.yaml")],
+        ),
+    ):
+        path = root / "benchmarks" / "results" / results
+        assert len(mw_proxy.load(path, "test", config(own))["methods"]["cso"]["per_seed"]) == 3
+        for other in others:
+            with pytest.raises(SystemExit, match="holds results of another config"):
+                mw_proxy.load(path, "test", other)
