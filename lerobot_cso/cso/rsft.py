@@ -17,7 +17,8 @@ being executed (``observation.skill_tokens``), whether the frame is the one the 
 (``observation.skill_start``) and the decision index (``observation.skill_step``), plus episode metadata.
 
 **Fine-tuning (Eq. 6).** The whole policy is trained on the stored (observation, skill) pairs of the decision
-frames the way ``lerobot-train`` trains it (the policy's AdamW and cosine presets at R-SFT's ``lr`` /
+frames (uniformly, or with ``advantage_weighted`` each drawn in proportion to its state's Eq. 8 advantage) the
+way ``lerobot-train`` trains it (the policy's AdamW and cosine presets at R-SFT's ``lr`` /
 ``min_lr``, LeRobot's ``update_policy`` step, ``epochs`` epochs, state saved after each epoch), then its
 observation encoders are frozen and ``<output_dir>/pretrained_model`` is saved with ``freeze_encoders: true``.
 """
