@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
+from lerobot_cso.cso.objectives import group_advantages
 from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError
@@ -317,12 +318,17 @@ class DecisionItems(torch.utils.data.Dataset):
 def success_advantages(
     tasks: list[str], seeds: list[int], states: dict[str, dict[int, dict[str, int]]]
 ) -> torch.Tensor:
-    """Eq. 8 for a kept success: R − R̄ of its state's N-strikes group = 1 − successes / attempts, per decision
-    (``tasks[i]``, ``seeds[i]``: the state of decision ``i``; ``states``: the collection's records per task)."""
-    return torch.tensor(
-        [1.0 - states[t][s]["successes"] / states[t][s]["attempts"] for t, s in zip(tasks, seeds, strict=True)],
-        dtype=torch.float64,
-    )
+    """Eq. 8 (:func:`~lerobot_cso.cso.objectives.group_advantages`) of a kept success in its state's N-strikes group,
+    1 − successes / attempts, per decision (``tasks[i]``, ``seeds[i]``: the state of decision ``i``; ``states``:
+    the collection's records per task)."""
+
+    def advantage(record: dict[str, int]) -> float:
+        hits, attempts = record["successes"], record["attempts"]
+        rewards = torch.tensor([[1.0] * hits + [0.0] * (attempts - hits)], dtype=torch.float64)
+        return float(group_advantages(rewards)[0, 0])  # the group's first reward is a success's
+
+    per_state = {(t, s): advantage(states[t][s]) for t, s in set(zip(tasks, seeds, strict=True))}
+    return torch.tensor([per_state[state] for state in zip(tasks, seeds, strict=True)], dtype=torch.float64)
 
 
 def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
