@@ -219,20 +219,22 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
             cfg = dataclasses.replace(draccus.load(PipelineConfig, f), **changes)
         return json.loads(json.dumps(mw_proxy.config_spec(cfg), default=str))
 
-    for results, own, others in (
+    for results, own, others, seeds in (
         (
             "mw_proxy.json",
             "metaworld_demo.yaml",
             [config("metaworld_demo.yaml", train_threads=1), config("mw_proxy.yaml")],
+            5,
         ),
         (
             "mw_proxy_s7.json",
             "mw_proxy.yaml",
             [config("mw_proxy.yaml", train_threads=2), config("metaworld_demo.yaml")],
+            3,
         ),
     ):
         path = root / "benchmarks" / "results" / results
-        assert len(mw_proxy.load(path, "test", config(own))["methods"]["cso"]["per_seed"]) == 3
+        assert len(mw_proxy.load(path, "test", config(own))["methods"]["cso"]["per_seed"]) == seeds
         for other in others:
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
