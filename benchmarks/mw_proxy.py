@@ -67,7 +67,8 @@ def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
 
 
 def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
-    """The results so far; a file made with another config is refused, so runs of two configs never mix."""
+    """The results so far, with ``command`` appended to the commands that made them (``"; "``-separated);
+    a file made with another config is refused, so runs of two configs never mix."""
     if path.is_file():
         results = json.loads(path.read_text())
         if results.get("config") != config:
@@ -75,6 +76,8 @@ def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
                 f"error: {path} holds results of another config (its 'config' differs from --config's); "
                 "move it aside or pass another --results"
             )
+        if results["command"].split("; ")[-1] != command:
+            results["command"] += "; " + command
         return results
     return {
         "config": config,
@@ -224,12 +227,15 @@ def main() -> int:
     methods = tuple(args.methods.split(","))
     if unknown := sorted(set(methods) - set(METHODS)):
         parser.error(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
+    finished = sum(len(e["per_seed"]) for e in results["methods"].values())
     with kept_pools():
         for seed in (int(s) for s in args.seeds.split(",")):
             run_seed(cfg, seed, args.work, results, args.results, methods)
-    results["wall_seconds_this_run"] = time.perf_counter() - started
-    save(args.results, results)
-    plot(results, args.results.with_suffix(".png"))
+    # a rerun with nothing left to do leaves the file (its commands, wall time and plot) as it was
+    if sum(len(e["per_seed"]) for e in results["methods"].values()) > finished:
+        results["wall_seconds_this_run"] = time.perf_counter() - started
+        save(args.results, results)
+        plot(results, args.results.with_suffix(".png"))
     print(table(results))
     return 0
 

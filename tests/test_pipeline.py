@@ -206,7 +206,8 @@ def test_more_iterations_continue_a_finished_stage_and_any_other_change_is_refus
 def test_committed_mw_proxy_results_resume_with_their_own_config():
     """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default) and
     mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded config is that file's spec (settings added later,
-    at their behave-as-before values, left out); another config is refused."""
+    at their behave-as-before values, left out); another config is refused; a resuming command is appended to
+    the file's commands, its latest one is not repeated."""
     import importlib.util
 
     root = Path(__file__).resolve().parents[1]
@@ -234,7 +235,11 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
         ),
     ):
         path = root / "benchmarks" / "results" / results
-        assert len(mw_proxy.load(path, "test", config(own))["methods"]["cso"]["per_seed"]) == seeds
+        loaded = mw_proxy.load(path, "test", config(own))
+        assert len(loaded["methods"]["cso"]["per_seed"]) == seeds
+        last = loaded["command"].split("; ")[-2]  # the file's latest command, then this one appended
+        assert loaded["command"] == json.loads(path.read_text())["command"] + "; test"
+        assert mw_proxy.load(path, last, config(own))["command"] == json.loads(path.read_text())["command"]
         for other in others:
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
