@@ -250,7 +250,15 @@ def test_finetune_mixes_in_demonstration_frames_with_their_autoencoder_tokens(
     capsys.readouterr()
     demo_nll_mixed = demo_nll(rsft.finetune(mixed, buffer))
     assert "18 buffer decisions + 18 demonstration frames" in capsys.readouterr().out  # 18 × 0.5 / (1 − 0.5)
-    assert demo_nll_mixed < demo_nll_buffer_only - 1.0  # measured: 6.98 → 4.82
+    assert demo_nll_mixed < demo_nll_buffer_only - 1.0  # measured: 7.24 → 4.84 (weighted below: 4.85)
+    # With the advantage weighting, each demonstration frame is drawn at the buffer's mean weight: the demos keep
+    # their half of the draws, and are learned about as in the uniform mix.
+    weighted = dataclasses.replace(mixed, output_dir=tmp_path / "mixed_weighted", advantage_weighted=True)
+    shutil.copytree(cfg.output_dir / "journal", weighted.output_dir / "journal")
+    demo_nll_weighted = demo_nll(rsft.finetune(weighted, buffer))
+    out = capsys.readouterr().out
+    assert "18 buffer decisions + 18 demonstration frames" in out and "9 of 18 decisions have weight > 0" in out
+    assert demo_nll_weighted < demo_nll_buffer_only - 1.0 and abs(demo_nll_weighted - demo_nll_mixed) < 0.5
     with pytest.raises(UsageError, match="is not a LeRobotDataset"):
         rsft.finetune(dataclasses.replace(mixed, output_dir=tmp_path / "bad", demos_root=tmp_path / "nowhere"), buffer)
     with pytest.raises(UsageError, match="--demo_fraction needs --demos_root"):
