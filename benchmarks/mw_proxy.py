@@ -36,7 +36,7 @@ from lerobot_cso.durable import write_atomic
 from lerobot_cso.evaluation import evaluate
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.rollout.pool import kept_pools
-from lerobot_cso.stage import settings_spec
+from lerobot_cso.stage import settings_spec, without_added_settings
 
 METHODS = ("il", "rsft", "spo_only", "cso", "token", "trajectory", "ript")
 SPO_RUNS = {
@@ -45,25 +45,17 @@ SPO_RUNS = {
     "trajectory": ("rsft", "trajectory"),
     "ript": ("rsft", "ript"),
 }
-# Settings added after results were written, at the values that behave as before they existed: left out of
-# the spec, so those results stay valid (another value is another config).
-LATER_SETTINGS = {"stop_state_at_cap": False, "train_threads": None, "advantage_weighted": False}
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 
 def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
-    """The settings the results depend on: the config without its output paths (some default to a timestamp)."""
+    """The settings the results depend on: the config without its output paths (some default to a timestamp)
+    and without the settings added later at their behave-as-before values (so earlier results stay valid)."""
 
     def strip(value: Any) -> Any:
-        if isinstance(value, dict):
-            return {
-                k: strip(v)
-                for k, v in value.items()
-                if k != "output_dir" and not (k in LATER_SETTINGS and v == LATER_SETTINGS[k])
-            }
-        return value
+        return {k: strip(v) for k, v in value.items() if k != "output_dir"} if isinstance(value, dict) else value
 
-    return strip(settings_spec(cfg, exclude=("seed",)))
+    return without_added_settings(strip(settings_spec(cfg, exclude=("seed",))))
 
 
 def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:

@@ -52,7 +52,7 @@ from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
 from lerobot_cso.rollout.pool import kept_pools
 from lerobot_cso.rollout.world import world_for
-from lerobot_cso.stage import PIPELINE_FIELDS, Stage
+from lerobot_cso.stage import PIPELINE_FIELDS, Stage, without_added_settings
 
 SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
 EVALUATED = {"il": "IL", "rsft": "R-SFT", "cso": "CSO"}  # evaluation name → table column
@@ -184,8 +184,9 @@ class Pipeline:
         is simply redone (``redo_on_change``) or only grows in one of the stage's ``grows`` keys (it continues)."""
         spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
         output, record = stage.output(), read_json(self.record_path(stage.name))
-        if record is not None and record["spec"] != spec and output.exists() and not stage.redo_on_change:
-            old, new = _flatten(record["spec"]), _flatten(spec)
+        same = record is not None and without_added_settings(record["spec"]) == without_added_settings(spec)
+        if record is not None and not same and output.exists() and not stage.redo_on_change:
+            old, new = _flatten(without_added_settings(record["spec"])), _flatten(without_added_settings(spec))
             changed = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
             listed = ", ".join(f"{k}: {old.get(k)} → {new.get(k)}" for k in changed)
             if not all(k in stage.grows and isinstance(old.get(k), int) and new.get(k, 0) > old[k] for k in changed):
@@ -194,7 +195,7 @@ class Pipeline:
                     "it, or choose another output_dir"
                 )
             print(f"[pipeline] {stage.name}: continuing ({listed})", flush=True)
-        if record is not None and record["spec"] == spec and record["complete"] and stage.complete():
+        if same and record["complete"] and stage.complete():
             print(f"[pipeline] {stage.name}: complete, skipped ({output})", flush=True)
             self.seconds[stage.name] = record["seconds"]
             return record["summary"]

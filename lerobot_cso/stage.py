@@ -15,6 +15,10 @@ from pathlib import Path
 from typing import Any, Protocol
 
 PIPELINE_FIELDS = ("tasks", "output_dir", "policy")  # set by the pipeline for every stage, not part of a spec
+# Settings added after outputs had been recorded without them, at the values that behave as before they existed:
+# a record that lacks one is the same spec as one holding that value, so older outputs still resume (another
+# value is another spec). A new setting whose default keeps the old behaviour is added here with that default.
+ADDED_SETTINGS: dict[str, Any] = {"stop_state_at_cap": False, "train_threads": None, "advantage_weighted": False}
 
 
 class Stage(Protocol):
@@ -71,3 +75,14 @@ def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
     return json.loads(
         json.dumps(data, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
     )
+
+
+def without_added_settings(spec: Any) -> Any:
+    """``spec`` (JSON data) without the :data:`ADDED_SETTINGS` that hold their behave-as-before value, at any depth."""
+    if isinstance(spec, dict):
+        return {
+            k: without_added_settings(v)
+            for k, v in spec.items()
+            if not (k in ADDED_SETTINGS and v == ADDED_SETTINGS[k])
+        }
+    return spec

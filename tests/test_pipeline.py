@@ -203,6 +203,25 @@ def test_more_iterations_continue_a_finished_stage_and_any_other_change_is_refus
             runner.execute(CountingStage(out, **changed))
 
 
+def test_a_record_made_before_a_setting_existed_matches_that_settings_behave_as_before_value(tiny_config, tmp_path):
+    """An output recorded before ``advantage_weighted`` existed resumes under a spec holding its default (False)
+    and is refused under any other value, the change named."""
+    from lerobot_cso.errors import UsageError
+    from lerobot_cso.stage import ADDED_SETTINGS
+
+    assert ADDED_SETTINGS["advantage_weighted"] is False
+    with open(tiny_config) as f:
+        runner = Pipeline(draccus.load(PipelineConfig, f))
+    out = tmp_path / "spo"
+    runner.execute(CountingStage(out, iterations=10))
+    later = CountingStage(out, iterations=10, advantage_weighted=False)
+    assert runner.execute(later) == {"iterations": 10} and later.runs == 0  # the old record's summary: skipped
+    with pytest.raises(UsageError, match=r"\(spo.advantage_weighted: None → True\)"):
+        runner.execute(CountingStage(out, iterations=10, advantage_weighted=True))
+    longer = CountingStage(out, iterations=20, advantage_weighted=False)
+    assert runner.execute(longer)["iterations"] == 20 and longer.runs == 1  # still continues
+
+
 def test_committed_mw_proxy_results_resume_with_their_own_config():
     """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default) and
     mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded config is that file's spec (settings added later,
