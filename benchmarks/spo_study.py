@@ -7,8 +7,9 @@ Every variant runs ``--config``'s SPO section from the R-SFT checkpoint of a fin
   seed and the iteration's index, so a finished run continued to more iterations is the longer run: each
   ``i<M>`` after the first continues a copy of the one before it.
 * ``lr<x>``: the learning rate x; ``g<B>``: B groups per iteration; ``k<K>``: K samples per group; ``t<T>``: the
-  rollouts' sampling temperature T (also the one the ratios are computed at). Each runs as many iterations as
-  the first ``i<M>`` (the baseline), from the R-SFT checkpoint.
+  rollouts' sampling temperature T (also the one the ratios are computed at); ``p<P>``: a state pool of P
+  training states per task. Each runs as many iterations as the first ``i<M>`` (the baseline), from the R-SFT
+  checkpoint.
 
 Every resulting policy is rolled out from the states that ``rsft_study.py`` uses: the last ``--states`` of the
 SPO training range per task, ``--k`` times each at evaluation's sampling. Prints the success rate per task and
@@ -44,6 +45,7 @@ SETTINGS = {
     "g": ("groups_per_iteration", int),
     "k": ("group_size", int),
     "t": ("temperature", float),
+    "p": ("state_pool", int),
 }
 
 
@@ -53,7 +55,9 @@ def parse_variant(name: str) -> tuple[str, Any]:
         if name.startswith(prefix):
             field, kind = SETTINGS[prefix]
             return field, kind(name.removeprefix(prefix))
-    raise ValueError(f"unknown variant '{name}': i<iterations>, lr<lr>, g<groups>, k<group size> or t<temperature>")
+    raise ValueError(
+        f"unknown variant '{name}': i<iterations>, lr<lr>, g<groups>, k<group size>, t<temperature> or p<state pool>"
+    )
 
 
 def with_setting(cfg: SPOConfig, field: str, value: Any, output_dir: Path) -> SPOConfig:
@@ -77,7 +81,9 @@ def main() -> int:
     parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
     parser.add_argument("--seed", type=int, default=0, help="the training seed the pipeline was made with")
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/spo_study"))
-    parser.add_argument("--variants", default="i10,i15,i20", help="i<M> (increasing), lr<x>, g<B>, k<K>, t<T>; i first")
+    parser.add_argument(
+        "--variants", default="i10,i15,i20", help="i<M> (increasing), lr<x>, g<B>, k<K>, t<T>, p<P>; i first"
+    )
     parser.add_argument("--states", type=int, default=100)
     parser.add_argument("--k", type=int, default=2)
     parser.add_argument("--num_envs", type=int, default=48)
