@@ -114,6 +114,8 @@ def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy,
 
 
 def test_a_journal_with_other_settings_is_refused(il_policy, tmp_path):
+    assert "stop_state_at_cap" not in make_cfg(il_policy, tmp_path).spec()  # as journals made before it existed
+    assert make_cfg(il_policy, tmp_path, stop_state_at_cap=True).spec()["stop_state_at_cap"] is True
     rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
     with pytest.raises(UsageError, match="other settings"):
         rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, sampling=Sampling(temperature=0.7)).spec())

@@ -50,7 +50,7 @@ from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
 from lerobot_cso.rollout_stage import RolloutStageConfig
-from lerobot_cso.stage import CheckpointStage
+from lerobot_cso.stage import CheckpointStage, without_added_settings
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
 
@@ -124,11 +124,10 @@ class RSFTConfig(RolloutStageConfig):
 
     def spec(self) -> dict[str, Any]:
         """Settings that define the buffer; a journal made with other settings is refused."""
-        keys = ("tasks", "successes_per_task", "n_strikes", "max_successes_per_state", "seed")
+        keys = ("tasks", "successes_per_task", "n_strikes", "max_successes_per_state", "stop_state_at_cap", "seed")
         spec = {k: getattr(self, k) for k in keys}
-        if self.stop_state_at_cap:  # only when set: journals from before the option stay valid
-            spec["stop_state_at_cap"] = True
-        return spec | {"sampling": asdict(self.sampling), "policy": str(self.policy.pretrained_path)}
+        spec |= {"sampling": asdict(self.sampling), "policy": str(self.policy.pretrained_path)}
+        return without_added_settings(spec)  # journals from before a later setting existed stay valid
 
 
 class Journal:
