@@ -1,4 +1,5 @@
-"""The settings every rollout stage shares (evaluation, R-SFT, SPO), checked by one ``validate()``.
+"""The settings every rollout stage shares (evaluation, R-SFT, SPO), checked by one ``validate()``, and the one
+the training stages (R-SFT, SPO) add: their torch threads while they train.
 
 A rollout stage rolls a saved policy out on the tasks of one world (:mod:`lerobot_cso.rollout.world`):
 ``--tasks`` names them, ``--sampling.temperature/top_k/greedy`` say how skills are drawn, ``--num_envs``,
@@ -36,7 +37,7 @@ ROBOT_FIELDS = ("robot", "teleop", "operator")  # settings of robot rollouts onl
 
 @dataclass
 class RolloutStageConfig(PolicyPathConfig):
-    """Base of ``EvalConfig``, ``RSFTConfig`` and ``SPOConfig``."""
+    """Base of ``EvalConfig`` and of the training stages' ``TrainingStageConfig``."""
 
     # What --policy.path must point at, for the error message when it is missing.
     policy_role: ClassVar[str] = "a directory written by save_pretrained"
@@ -53,10 +54,6 @@ class RolloutStageConfig(PolicyPathConfig):
     vectorization: str = "processes"
     # Episode cap of the rollouts (a failure runs to the cap); null: the world's horizon.
     max_steps: int | None = None
-    # torch's CPU threads while the stage trains (R-SFT's fine-tune, SPO's updates; evaluation does not train);
-    # null: the process's setting. The rollouts' env workers idle meanwhile, so on 2 cores 2 threads train
-    # faster than 1 (docs/cso-on-cpu.md); the decisions during rollouts keep the process's setting.
-    train_threads: int | None = None
     # A LeRobot robot to roll out on (with an operator) instead of a simulated world.
     robot: RobotConfig | None = None
     # Optional teleoperator that moves the robot while the operator arranges each scene.
@@ -78,17 +75,6 @@ class RolloutStageConfig(PolicyPathConfig):
         robot's settings only when it runs on a robot."""
         robot = () if self.robot is not None else ROBOT_FIELDS
         return settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", "train_threads", *robot))
-
-    @contextmanager
-    def training(self) -> Iterator[None]:
-        """A block run with ``train_threads`` torch threads (unchanged when null), restored afterwards."""
-        before = torch.get_num_threads()
-        if self.train_threads is not None:
-            torch.set_num_threads(self.train_threads)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(before)
 
     def horizon(self) -> int:
         """The episode cap of the rollouts: ``max_steps``, or the world's horizon."""
@@ -112,8 +98,6 @@ class RolloutStageConfig(PolicyPathConfig):
             raise UsageError(str(e)) from None
         if self.num_envs < 1:
             raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
-        if self.train_threads is not None and self.train_threads < 1:
-            raise UsageError(f"train_threads must be >= 1 or null, got {self.train_threads}")
         if self.vectorization not in VECTORIZATIONS:
             raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:
@@ -128,3 +112,29 @@ class RolloutStageConfig(PolicyPathConfig):
                 f"the policy was not trained on {', '.join(unknown)}; it knows: {'; '.join(map(repr, known))}"
             )
         return tasks
+
+
+@dataclass
+class TrainingStageConfig(RolloutStageConfig):
+    """Base of ``RSFTConfig`` and ``SPOConfig``: rollout stages that also train the policy."""
+
+    # torch's CPU threads while the stage trains (R-SFT's fine-tune, SPO's updates); null: the process's
+    # setting. The rollouts' env workers idle meanwhile, so on 2 cores 2 threads train faster than 1
+    # (docs/cso-on-cpu.md); the decisions during rollouts keep the process's setting. Not part of the spec.
+    train_threads: int | None = None
+
+    @contextmanager
+    def training(self) -> Iterator[None]:
+        """A block run with ``train_threads`` torch threads (unchanged when null), restored afterwards."""
+        before = torch.get_num_threads()
+        if self.train_threads is not None:
+            torch.set_num_threads(self.train_threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
+
+    def validate(self) -> list[str]:
+        if self.train_threads is not None and self.train_threads < 1:
+            raise UsageError(f"train_threads must be >= 1 or null, got {self.train_threads}")
+        return super().validate()

@@ -103,6 +103,7 @@ def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
         (["--tasks=reach-v9"], "unknown MetaWorld task 'reach-v9'"),
         (["--train_threads=0"], "train_threads must be >= 1 or null, got 0"),
         (["--spo.train_threads=0"], "train_threads must be >= 1 or null, got 0"),
+        (["--eval.train_threads=2"], "unrecognized arguments: --eval.train_threads=2"),  # evaluation trains nothing
     ],
 )
 def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path, args, message, capsys, monkeypatch):

@@ -49,7 +49,7 @@ from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
-from lerobot_cso.rollout_stage import RolloutStageConfig
+from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.stage import CheckpointStage, without_added_settings
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
@@ -60,7 +60,7 @@ def _rsft_sampling() -> Sampling:
 
 
 @dataclass
-class RSFTConfig(RolloutStageConfig):
+class RSFTConfig(TrainingStageConfig):
     """Settings of ``lerobot-cso rsft --policy.path=<IL checkpoint> --tasks=MT10 --output_dir=...``."""
 
     policy_role: ClassVar[str] = "the IL checkpoint's pretrained_model directory"

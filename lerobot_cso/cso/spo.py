@@ -51,7 +51,7 @@ from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
-from lerobot_cso.rollout_stage import RolloutStageConfig
+from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.stage import CheckpointStage
 
 LOG_COLUMNS = (
@@ -82,7 +82,7 @@ UPDATE_STATS = (
 
 
 @dataclass
-class SPOConfig(RolloutStageConfig):
+class SPOConfig(TrainingStageConfig):
     """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
 
     policy_role: ClassVar[str] = "the R-SFT checkpoint's pretrained_model directory"
