@@ -2,10 +2,11 @@
 
     [accelerate launch --multi_gpu --num_processes N] tests/distributed_stage.py STAGE POLICY OUT LENGTH DIGESTS
 
-LENGTH is SPO's iterations or R-SFT's epochs.
+STAGE is spo, rsft or rsft_adv (R-SFT with ``advantage_weighted``); LENGTH is SPO's iterations or R-SFT's epochs.
 
 Each process writes ``DIGESTS/rank<r>.pt``, the weights its replica ends with (the library itself writes on
-rank 0 only): the prior after SPO, the whole policy after R-SFT.
+rank 0 only): the prior after SPO, the whole policy after R-SFT; after R-SFT also ``DIGESTS/drawn_rank<r>.pt``,
+the skill tokens of every decision its fine-tune trained on, in order.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft, spo
 from lerobot_cso.policy import CSOPolicy
+from lerobot_cso.policy.configuration_cso import SKILL_TOKENS_KEY
 
 
 def run_spo(policy_path: Path, out: Path, iterations: int) -> dict[str, torch.Tensor]:
@@ -46,7 +48,9 @@ def run_spo(policy_path: Path, out: Path, iterations: int) -> dict[str, torch.Te
     return trained[0].prior.state_dict() if trained else {}
 
 
-def run_rsft(policy_path: Path, out: Path, epochs: int) -> dict[str, torch.Tensor]:
+def run_rsft(
+    policy_path: Path, out: Path, epochs: int, digests: Path, advantage_weighted: bool = False
+) -> dict[str, torch.Tensor]:
     cfg = rsft.RSFTConfig(
         tasks=",".join(TASKS),
         output_dir=out,
@@ -57,6 +61,7 @@ def run_rsft(policy_path: Path, out: Path, epochs: int) -> dict[str, torch.Tenso
         batch_size=4,
         lr=1e-3,
         min_lr=1e-4,
+        advantage_weighted=advantage_weighted,
     )
     cfg.policy = load_policy(policy_path)[0].config
     cfg.policy.pretrained_path = policy_path
@@ -68,14 +73,27 @@ def run_rsft(policy_path: Path, out: Path, epochs: int) -> dict[str, torch.Tenso
         if value:
             frozen.append(self)
 
+    drawn: list[torch.Tensor] = []
+    update = rsft.update_policy
+
+    def record_drawn(tracker, policy, batch, *args, **kwargs):  # the decisions this process trains on
+        drawn.append(batch[SKILL_TOKENS_KEY].clone())
+        return update(tracker, policy, batch, *args, **kwargs)
+
     CSOPolicy.set_encoders_frozen = record_frozen
+    rsft.update_policy = record_drawn
     rsft.run_rsft(cfg, make_engine=lambda policy, pre, post, settings: ScriptedEngine(mixed))
+    digests.mkdir(parents=True, exist_ok=True)
+    torch.save(torch.cat(drawn), digests / f"drawn_rank{distributed.state().process_index}.pt")
     return frozen[-1].state_dict()
 
 
 def main(stage: str, policy_path: Path, out: Path, length: int, digests: Path) -> None:
     torch.set_num_threads(1)
-    weights = (run_spo if stage == "spo" else run_rsft)(policy_path, out, length)
+    if stage == "spo":
+        weights = run_spo(policy_path, out, length)
+    else:
+        weights = run_rsft(policy_path, out, length, digests, advantage_weighted=stage == "rsft_adv")
     digests.mkdir(parents=True, exist_ok=True)
     torch.save(weights, digests / f"rank{distributed.state().process_index}.pt")
 

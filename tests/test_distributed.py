@@ -11,8 +11,11 @@ from pathlib import Path
 import pytest
 import torch
 from cso_fakes import save_tiny_metaworld_policy
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.cso.rsft import SEED_KEY
+from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_TOKENS_KEY
 
 TESTS = Path(__file__).parent
 ACCELERATE = Path(sys.executable).parent / "accelerate"
@@ -20,9 +23,13 @@ ACCELERATE = Path(sys.executable).parent / "accelerate"
 ENV = {**os.environ, "PYTHONHASHSEED": "0", "OMP_NUM_THREADS": "1", "PYTHONPATH": str(TESTS)}
 
 
+def digests_of(out: Path, length: int, processes: int) -> Path:
+    return out.with_name(out.name + f"_digests_{length}_{processes}")
+
+
 def stage_run(stage: str, policy: Path, out: Path, length: int, processes: int) -> list[dict[str, torch.Tensor]]:
     """Run tests/distributed_stage.py on ``processes`` processes; returns each process's final weights."""
-    digests = out.with_name(out.name + f"_digests_{length}_{processes}")
+    digests = digests_of(out, length, processes)
     script = [str(TESTS / "distributed_stage.py"), stage, str(policy), str(out), str(length), str(digests)]
     launch = [str(ACCELERATE), "launch", "--multi_gpu", f"--num_processes={processes}", "--num_machines=1"]
     launch += ["--mixed_precision=no", "--dynamo_backend=no", "--main_process_port=0"]
@@ -96,3 +103,20 @@ def test_rsft_on_two_processes_keeps_every_success_once_and_identical_replicas(f
     files = sorted((tmp_path / "rsft" / "journal" / "episodes").glob("*/*.npz"))
     assert len({(f.parent.name, f.name) for f in files}) == len(files) == 6  # each kept success once
     assert json.loads((tmp_path / "rsft" / "train_state" / "progress.json").read_text()) == {"epochs_done": 2}
+
+
+def test_advantage_weighted_rsft_on_two_processes_shards_the_weighted_draws(frozen_policy, tmp_path):
+    rank0, rank1 = stage_run("rsft_adv", frozen_policy, tmp_path / "adv", length=2, processes=2)
+    assert all(torch.equal(rank0[k], rank1[k]) for k in rank0)
+    drawn = [torch.load(digests_of(tmp_path / "adv", 2, 2) / f"drawn_rank{r}.pt") for r in (0, 1)]
+    table = LeRobotDataset("local/cso_rsft_buffer", root=tmp_path / "adv" / "buffer").hf_dataset.with_format("numpy")[:]
+    starts = table[SKILL_START_KEY].reshape(-1) == 1
+    decisions = zip(table[SKILL_TOKENS_KEY][starts].tolist(), table[SEED_KEY][starts].reshape(-1), strict=True)
+    seed_of = {tuple(tokens): int(seed) for tokens, seed in decisions}
+    # Per task: 2 successes of an odd seed (2 of 4 attempts: Eq. 8 advantage 0.5) and 1 of a seed solved on every
+    # attempt (advantage 0), 3 decisions each: 18 decisions, 12 of them with weight.
+    assert len(seed_of) == 18 and sum(s % 2 for s in seed_of.values()) == 12
+    for tokens in drawn:  # each process draws its share of each epoch's 18, only from the weighted decisions
+        assert len(tokens) == 2 * 3 * 4  # 5 batches of 4 split over 2 processes: 3 each (accelerate evens them)
+        assert all(seed_of[tuple(t)] % 2 == 1 for t in tokens.tolist())
+    assert not torch.equal(drawn[0], drawn[1])  # the shards differ: not one draw made twice
