@@ -5,7 +5,8 @@ of the training seed range (never the evaluation range), at the given sampling s
 the histogram of successes per state (0 … K), the share of states that always fail / always succeed / are
 mixed, the SPO rejection rate this predicts for other group sizes (mean over states of p^K + (1 − p)^K with
 the measured per-state rates p), and the entropy of the sampled skill tokens (mean of −log π of the sampled
-tokens: an unbiased estimate of the per-token entropy of the sampling distribution). ``--json`` saves it.
+tokens: an unbiased estimate of the per-token entropy of the sampling distribution), and each state's successes
+(to pair states across sampling settings). ``--json`` saves it.
 
     python benchmarks/state_diagnosis.py --policy_path=CKPT --tasks=reach-v3,button-press-v3 --states=40 --k=8
 """
@@ -35,6 +36,7 @@ def main() -> int:
     parser.add_argument("--top_k", type=int, default=5)
     parser.add_argument("--max_steps", type=int, default=200)
     parser.add_argument("--num_envs", type=int, default=32)
+    parser.add_argument("--seed", type=int, default=7, help="the rollouts' sampling seed")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -46,7 +48,7 @@ def main() -> int:
     sampling = Sampling(temperature=args.temperature, top_k=args.top_k)
     pool = EnvPool(args.num_envs, max_steps=args.max_steps)
     with RolloutEngine(policy, pre, post, pool, task_description) as engine:
-        result = engine.rollout(states, k=args.k, sampling=sampling, seed=7, progress="diagnosis")
+        result = engine.rollout(states, k=args.k, sampling=sampling, seed=args.seed, progress="diagnosis")
     report = {"policy": str(args.policy_path), "k": args.k, "sampling": vars(sampling), "tasks": {}}
     for task in tasks:
         groups = [g for g in result.groups() if g[0].task == task]
@@ -61,6 +63,7 @@ def main() -> int:
             "mixed": float(np.mean((successes > 0) & (successes < args.k))),
             "predicted_rejection": {str(k): float(np.mean(p**k + (1 - p) ** k)) for k in (2, 4, 8, 16)},
             "token_entropy_nats": float(-logp.mean()),
+            "per_state": {str(g[0].init_seed): int(n) for g, n in zip(groups, successes, strict=True)},
         }
     print(json.dumps(report, indent=2))
     if args.json:
