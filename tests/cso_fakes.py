@@ -63,7 +63,6 @@ class ScriptedEngine:
         self.crash_after = crash_after
         self.policy = policy
         self.calls: list[list[InitialState]] = []
-        self.samplings: list[Sampling] = []  # each call's, so an outcome may depend on it
         self.delivered = 0
 
     def episode(self, task: str, seed: int, group: int, sample: int, n_action_steps: int = 8) -> Episode:
@@ -106,7 +105,6 @@ class ScriptedEngine:
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         self.calls.append(states)
-        self.samplings.append(sampling)
         episodes = []
         for g, s in enumerate(states):
             for i in range(k):

@@ -38,22 +38,8 @@ EXPECTED_FILES = {
 }
 # Hand count: reach tried 4 states x 4 attempts, saw 0+2+4+1 successes, kept 3, struck out on S.
 EXPECTED_REPORT = {
-    "reach-v3": {
-        "rollouts": 16,
-        "successes": 7,
-        "kept": 3,
-        "states_tried": 4,
-        "states_struck_out": 1,
-        "states_rescued": 0,
-    },
-    "button-press-v3": {
-        "rollouts": 16,
-        "successes": 5,
-        "kept": 3,
-        "states_tried": 4,
-        "states_struck_out": 2,
-        "states_rescued": 0,
-    },
+    "reach-v3": {"rollouts": 16, "successes": 7, "kept": 3, "states_tried": 4, "states_struck_out": 1},
+    "button-press-v3": {"rollouts": 16, "successes": 5, "kept": 3, "states_tried": 4, "states_struck_out": 2},
 }
 
 
@@ -115,55 +101,6 @@ def test_a_cap_per_state_spreads_the_successes_over_more_states(il_policy, tmp_p
     assert rsft.collection_report(journal, list(TASKS))["reach-v3"]["successes"] == (2 if cap is None else 7)
 
 
-def test_a_struck_out_state_gets_its_rescue_attempts_at_the_rescue_sampling(il_policy, tmp_path):
-    rescue = Sampling(temperature=2.0, top_k=50)
-    at_rescue = {("reach-v3", S): {2}, ("button-press-v3", S + 3): {0, 1}}  # the other states still fail
-
-    def outcome_by_sampling(task: str, seed: int, sample: int) -> bool:
-        successes = at_rescue.get((task, seed), set()) if engine.samplings[-1] == rescue else OUTCOMES[(task, seed)]
-        return sample in successes
-
-    cfg = make_cfg(il_policy, tmp_path / "out", rescue_sampling=rescue)
-    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
-    engine = ScriptedEngine(outcome_by_sampling)
-    rsft.collect(cfg, list(TASKS), engine, journal)
-    # Round 1 strikes out reach S and button S + 1; their rescue fills reach (S's sample 2, kept as attempt
-    # 4 + 2). Round 2 (button only) strikes out S + 3, whose two rescue successes are seen but not needed.
-    assert [[(s.task, s.seed) for s in call] for call in engine.calls] == [
-        [("reach-v3", S), ("reach-v3", S + 1), ("button-press-v3", S), ("button-press-v3", S + 1)],
-        [("reach-v3", S), ("button-press-v3", S + 1)],
-        [("button-press-v3", S + 2), ("button-press-v3", S + 3)],
-        [("button-press-v3", S + 3)],
-    ]
-    assert engine.samplings == [cfg.sampling, rescue, cfg.sampling, rescue]
-    assert kept_files(journal) == {
-        "reach-v3": ["1000000_006", "1000001_001", "1000001_003"],
-        "button-press-v3": ["1000000_002", "1000002_000", "1000002_001"],
-    }
-    with np.load(journal.episode_files("reach-v3")[0]) as episode:
-        assert float(episode["temperature"]) == 2.0
-    assert journal.states("reach-v3")[S] == {"attempts": 8, "successes": 1, "rescued": 1}
-    assert journal.states("button-press-v3")[S] == {"attempts": 4, "successes": 1}
-    assert rsft.collection_report(journal, list(TASKS)) == {
-        "reach-v3": {
-            "rollouts": 12,
-            "successes": 3,
-            "kept": 3,
-            "states_tried": 2,
-            "states_struck_out": 0,
-            "states_rescued": 1,
-        },
-        "button-press-v3": {
-            "rollouts": 24,
-            "successes": 7,
-            "kept": 3,
-            "states_tried": 4,
-            "states_struck_out": 1,
-            "states_rescued": 1,
-        },
-    }
-
-
 def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy, tmp_path):
     cfg = make_cfg(il_policy, tmp_path / "out")
     journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
@@ -179,9 +116,6 @@ def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy,
 def test_a_journal_with_other_settings_is_refused(il_policy, tmp_path):
     assert "stop_state_at_cap" not in make_cfg(il_policy, tmp_path).spec()  # as journals made before it existed
     assert make_cfg(il_policy, tmp_path, stop_state_at_cap=True).spec()["stop_state_at_cap"] is True
-    assert "rescue_sampling" not in make_cfg(il_policy, tmp_path).spec()
-    rescue = make_cfg(il_policy, tmp_path, rescue_sampling=Sampling(temperature=2.0, top_k=50)).spec()
-    assert rescue["rescue_sampling"] == {"temperature": 2.0, "top_k": 50, "greedy": False}
     rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
     with pytest.raises(UsageError, match="other settings"):
         rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, sampling=Sampling(temperature=0.7)).spec())

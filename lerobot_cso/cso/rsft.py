@@ -4,8 +4,7 @@
 From each state the IL policy runs ``n_strikes`` attempts (one group, batched) with exploratory sampling
 (temperature / top-k above evaluation's); every success (or, with ``max_successes_per_state``, the first few
 of a state) is kept until the task has ``successes_per_task``; a state where all attempts fail is struck out
-and the next state is drawn (with ``rescue_sampling``, only after ``n_strikes`` more attempts at that sampling
-have failed too).
+and the next state is drawn.
 
 **Durability.** ``<output_dir>/journal`` (a :class:`~lerobot_cso.durable.EpisodeJournal`) is the source of
 truth: each kept success is written atomically as ``episodes/<task>/<seed>_<attempt>.npz`` the moment its
@@ -79,11 +78,6 @@ class RSFTConfig(TrainingStageConfig):
     # successes, its remaining attempts are not started. On a robot this spares the operator the scenes whose
     # successes would be dropped anyway; in simulation a state's attempts mostly run at once, so it saves little.
     stop_state_at_cap: bool = False
-    # Not in the paper, which strikes a state out once its n_strikes attempts fail ("avoids intractable starting
-    # conditions", App. E.2): such a state first gets n_strikes more attempts at this more exploratory sampling,
-    # and its successes are kept like any other. Neither SPO (a uniform group has zero Eq. 8 advantage) nor the
-    # paper's R-SFT learns anything from a state the policy always fails; this reaches some of them.
-    rescue_sampling: Sampling | None = None
     states_per_round: int = 2  # new initial states per unfinished task per batched rollout call
     max_states_per_task: int = 2000
     seed: int = 0
@@ -133,7 +127,6 @@ class RSFTConfig(TrainingStageConfig):
         keys = ("tasks", "successes_per_task", "n_strikes", "max_successes_per_state", "stop_state_at_cap", "seed")
         spec = {k: getattr(self, k) for k in keys}
         spec |= {"sampling": asdict(self.sampling), "policy": str(self.policy.pretrained_path)}
-        spec["rescue_sampling"] = asdict(self.rescue_sampling) if self.rescue_sampling else None
         return without_added_settings(spec)  # journals from before a later setting existed stay valid
 
 
@@ -157,7 +150,7 @@ class Journal:
             if int(path.stem.split("_")[0]) not in recorded:
                 path.unlink()
 
-    def save_episode(self, episode: Episode, sampling: Sampling, attempt: int) -> None:
+    def save_episode(self, episode: Episode, sampling: Sampling) -> None:
         arrays = {
             "states": episode.states.numpy(),
             "actions": episode.actions.numpy(),
@@ -167,17 +160,14 @@ class Journal:
             "temperature": np.float32(sampling.temperature),
         }
         arrays.update({f"image_{cam}": frames.numpy() for cam, frames in episode.images.items()})
-        self.store.save_episode(episode.task, f"{episode.init_seed:07d}_{attempt:03d}", arrays)
+        self.store.save_episode(episode.task, f"{episode.init_seed:07d}_{episode.sample:03d}", arrays)
 
-    def save_state(self, task: str, seed: int, attempts: int, successes: int, rescued: int | None = None) -> None:
-        """A state's record; ``rescued``: how many of its successes came from the rescue attempts, if it had any."""
-        record = {"attempts": attempts, "successes": successes}
-        self.store.save_record(task, f"{seed:07d}", record if rescued is None else record | {"rescued": rescued})
+    def save_state(self, task: str, seed: int, attempts: int, successes: int) -> None:
+        self.store.save_record(task, f"{seed:07d}", {"attempts": attempts, "successes": successes})
 
 
 def collection_report(journal: Journal, tasks: list[str]) -> dict[str, dict[str, int]]:
-    """Per task (the paper's Table 7): rollouts run, successes seen, kept, states tried and struck out, and
-    states that succeeded only on their rescue attempts."""
+    """Per task (the paper's Table 7): rollouts run, successes seen, kept, states tried and struck out."""
     report = {}
     for task in tasks:
         states = journal.states(task).values()
@@ -187,7 +177,6 @@ def collection_report(journal: Journal, tasks: list[str]) -> dict[str, dict[str,
             "kept": len(journal.episode_files(task)),
             "states_tried": len(states),
             "states_struck_out": sum(s["successes"] == 0 for s in states),
-            "states_rescued": sum(s.get("rescued", 0) > 0 for s in states),
         }
     return report
 
@@ -195,7 +184,6 @@ def collection_report(journal: Journal, tasks: list[str]) -> dict[str, dict[str,
 def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: Journal) -> None:
     """Roll out until every task holds ``successes_per_task`` successes (Algorithm 1, lines 2–9)."""
     sampling, world, main = cfg.sampling, cfg.world(), distributed.is_main()
-    cap = cfg.max_successes_per_state or cfg.n_strikes
     if main:  # the journal is written by the main process alone; the others read it after each round
         for task in tasks:
             journal.drop_unrecorded(task)
@@ -220,46 +208,22 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
         round_seed = seeds.round_seed(cfg.seed, requests[0].seed)
         needed, per_state = dict(kept), dict.fromkeys(requests, 0)
 
-        def keep(
-            episode: Episode, sampling: Sampling, first_attempt: int, needed: dict = needed, per_state: dict = per_state
-        ) -> None:
-            state = InitialState(episode.task, episode.init_seed)
+        def keep(episode: Episode, needed: dict[str, int] = needed, per_state: dict = per_state) -> None:
+            state, cap = InitialState(episode.task, episode.init_seed), cfg.max_successes_per_state or cfg.n_strikes
             if episode.success and needed[episode.task] < cfg.successes_per_task and per_state[state] < cap:
                 needed[episode.task] += 1
                 per_state[state] += 1
-                journal.save_episode(episode, sampling, first_attempt + episode.sample)
+                journal.save_episode(episode, sampling)
                 progress.update(1)
 
         stop_after = cfg.max_successes_per_state if cfg.stop_state_at_cap else None
-        groups = engine.rollout(
-            requests,
-            k=cfg.n_strikes,
-            sampling=sampling,
-            seed=round_seed,
-            on_episode=lambda e: keep(e, sampling, 0),
-            stop_after=stop_after,
-        ).groups()
-        rescues: dict[InitialState, list[Episode]] = {}
-        if cfg.rescue_sampling is not None:
-            struck = [InitialState(g[0].task, g[0].init_seed) for g in groups if not any(e.success for e in g)]
-            if struck:
-                rescue_groups = engine.rollout(
-                    struck,
-                    k=cfg.n_strikes,
-                    sampling=cfg.rescue_sampling,
-                    seed=seeds.round_seed(round_seed, 1),  # another stream of draws than the first attempts'
-                    on_episode=lambda e: keep(e, cfg.rescue_sampling, cfg.n_strikes),
-                    stop_after=stop_after,
-                ).groups()
-                rescues = dict(zip(struck, rescue_groups, strict=True))
+        result = engine.rollout(
+            requests, k=cfg.n_strikes, sampling=sampling, seed=round_seed, on_episode=keep, stop_after=stop_after
+        )
         if main:
-            for group in groups:
+            for group in result.groups():
                 first = group[0]
-                state = InitialState(first.task, first.init_seed)
-                more = rescues.get(state, [])
-                rescued = sum(e.success for e in more) if state in rescues else None
-                successes = sum(e.success for e in group) + (rescued or 0)
-                journal.save_state(first.task, first.init_seed, len(group) + len(more), successes, rescued)
+                journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
         distributed.wait_for_everyone()
     progress.close()
 
@@ -505,14 +469,11 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = Rollou
 
 
 def report_table(report: dict[str, dict[str, int]]) -> str:
-    lines = [
-        "| task | rollouts | successes | kept | states tried | struck out | rescued |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
+    lines = ["| task | rollouts | successes | kept | states tried | struck out |", "|---|---:|---:|---:|---:|---:|"]
     for task, r in report.items():
         lines.append(
             f"| {task} | {r['rollouts']} | {r['successes']} | {r['kept']} | {r['states_tried']} | "
-            f"{r['states_struck_out']} | {r['states_rescued']} |"
+            f"{r['states_struck_out']} |"
         )
     return "\n".join(lines)
 
