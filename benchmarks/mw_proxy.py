@@ -16,6 +16,11 @@ rollout stages of a run share their env pools (:func:`~lerobot_cso.rollout.pool.
     python benchmarks/mw_proxy.py             # the demo's config (configs/metaworld_demo.yaml), seeds 0-2
     python benchmarks/mw_proxy.py --seeds=0   # one seed
     python benchmarks/mw_proxy.py --methods=il,rsft,cso   # the pipelines of every seed first
+
+Further arguments are pipeline settings over ``--config``, as ``lerobot-cso pipeline`` takes them; they are part
+of the config the results file is tied to:
+
+    python benchmarks/mw_proxy.py --results=benchmarks/results/other.json --rsft.successes_per_task=200
 """
 
 import argparse
@@ -46,6 +51,11 @@ SPO_RUNS = {
     "ript": ("rsft", "ript"),
 }
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
+
+
+def pipeline_config(path: Path, overrides: list[str]) -> PipelineConfig:
+    """The pipeline config of the file at ``path`` with ``overrides`` (``--section.setting=value``) applied."""
+    return draccus.parse(PipelineConfig, args=[f"--config_path={path}", *overrides])
 
 
 def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
@@ -210,10 +220,9 @@ def main() -> int:
     parser.add_argument("--methods", default=",".join(METHODS), help="a subset runs first (il, rsft, cso always)")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
-    args = parser.parse_args()
+    args, overrides = parser.parse_known_args()
     command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
-    with open(args.config) as f:
-        cfg = draccus.load(PipelineConfig, f)
+    cfg = pipeline_config(args.config, overrides)
     results = load(args.results, command, config_spec(cfg))
     started = time.perf_counter()
     methods = tuple(args.methods.split(","))

@@ -263,3 +263,13 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
         for other in others:
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
+    # Settings given on the command line over --config are part of the config a results file is tied to.
+    plain = mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", [])
+    more = mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", ["--rsft.successes_per_task=200"])
+    assert (plain.rsft.successes_per_task, more.rsft.successes_per_task) == (100, 200)
+    assert (
+        mw_proxy.config_spec(plain)
+        == json.loads((root / "benchmarks" / "results" / "mw_proxy.json").read_text())["config"]
+    )
+    with pytest.raises(SystemExit, match="holds results of another config"):
+        mw_proxy.load(root / "benchmarks" / "results" / "mw_proxy.json", "test", mw_proxy.config_spec(more))
