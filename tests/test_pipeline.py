@@ -224,10 +224,10 @@ def test_a_record_made_before_a_setting_existed_matches_that_settings_behave_as_
 
 
 def test_committed_mw_proxy_results_resume_with_their_own_config():
-    """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default) and
-    mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded config is that file's spec (settings added later,
-    at their behave-as-before values, left out); another config is refused; a resuming command is appended to
-    the file's commands, its latest one is not repeated."""
+    """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default), mw_proxy_n200.json
+    from it with --rsft.successes_per_task=200 and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
+    config is that file's spec (settings added later, at their behave-as-before values, left out); another config
+    is refused; a resuming command is appended to the file's commands, its latest one is not repeated."""
     import importlib.util
 
     root = Path(__file__).resolve().parents[1]
@@ -235,41 +235,39 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
     mw_proxy = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mw_proxy)
 
-    def config(name: str, **changes) -> dict:
-        with open(root / "configs" / name) as f:
-            cfg = dataclasses.replace(draccus.load(PipelineConfig, f), **changes)
+    def config(name: str, *overrides: str, **changes) -> dict:
+        cfg = dataclasses.replace(mw_proxy.pipeline_config(root / "configs" / name, list(overrides)), **changes)
         return json.loads(json.dumps(mw_proxy.config_spec(cfg), default=str))
+
+    n200 = ("--rsft.successes_per_task=200",)
 
     for results, own, others, seeds in (
         (
             "mw_proxy.json",
-            "metaworld_demo.yaml",
-            [config("metaworld_demo.yaml", train_threads=1), config("mw_proxy.yaml")],
+            config("metaworld_demo.yaml"),
+            [
+                config("metaworld_demo.yaml", train_threads=1),
+                config("mw_proxy.yaml"),
+                config("metaworld_demo.yaml", *n200),
+            ],
             5,
         ),
+        ("mw_proxy_n200.json", config("metaworld_demo.yaml", *n200), [config("metaworld_demo.yaml")], 5),
         (
             "mw_proxy_s7.json",
-            "mw_proxy.yaml",
+            config("mw_proxy.yaml"),
             [config("mw_proxy.yaml", train_threads=2), config("metaworld_demo.yaml")],
             3,
         ),
     ):
         path = root / "benchmarks" / "results" / results
-        loaded = mw_proxy.load(path, "test", config(own))
+        loaded = mw_proxy.load(path, "test", own)
         assert len(loaded["methods"]["cso"]["per_seed"]) == seeds
         last = loaded["command"].split("; ")[-2]  # the file's latest command, then this one appended
         assert loaded["command"] == json.loads(path.read_text())["command"] + "; test"
-        assert mw_proxy.load(path, last, config(own))["command"] == json.loads(path.read_text())["command"]
+        assert mw_proxy.load(path, last, own)["command"] == json.loads(path.read_text())["command"]
         for other in others:
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
-    # Settings given on the command line over --config are part of the config a results file is tied to.
-    plain = mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", [])
-    more = mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", ["--rsft.successes_per_task=200"])
-    assert (plain.rsft.successes_per_task, more.rsft.successes_per_task) == (100, 200)
-    assert (
-        mw_proxy.config_spec(plain)
-        == json.loads((root / "benchmarks" / "results" / "mw_proxy.json").read_text())["config"]
-    )
-    with pytest.raises(SystemExit, match="holds results of another config"):
-        mw_proxy.load(root / "benchmarks" / "results" / "mw_proxy.json", "test", mw_proxy.config_spec(more))
+    # Settings given on the command line over --config reach the config.
+    assert mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", list(n200)).rsft.successes_per_task == 200
