@@ -184,10 +184,11 @@ class Pipeline:
         is simply redone (``redo_on_change``) or only grows in one of the stage's ``grows`` keys (it continues)."""
         spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
         output, record = stage.output(), read_json(self.record_path(stage.name))
+        current = without_added_settings(spec)
         recorded = None if record is None else without_added_settings(record["spec"])
-        same = recorded == without_added_settings(spec)
+        same = recorded == current
         if record is not None and not same and output.exists() and not stage.redo_on_change:
-            old, new = _flatten(recorded), _flatten(without_added_settings(spec))
+            old, new = _flatten(recorded), _flatten(current)
             changed = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
             listed = ", ".join(f"{k}: {old.get(k)} → {new.get(k)}" for k in changed)
             if not all(k in stage.grows and isinstance(old.get(k), int) and new.get(k, 0) > old[k] for k in changed):
