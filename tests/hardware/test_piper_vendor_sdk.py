@@ -7,6 +7,7 @@ no one here wrote.
 from __future__ import annotations
 
 import math
+import statistics
 import time
 
 import can
@@ -76,7 +77,13 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     assert gripper.foc_status.driver_enable_status and gripper.status_code == 0x40
     status = sdk.GetArmStatus().arm_status
     assert (status.ctrl_mode, status.arm_status, status.mode_feed, status.motion_status) == (1, 0, 1, 0)
-    assert sdk.GetArmJointMsgs().Hz == pytest.approx(200, rel=0.2)
+    # The SDK counts frames between wake-ups of a thread it assumes wakes every 0.1 s; on a loaded machine one
+    # late wake-up reads high (CI once read 310 Hz), so judge the median of seven of its windows.
+    rates = []
+    for _ in range(7):
+        rates.append(sdk.GetArmJointMsgs().Hz)
+        time.sleep(0.11)
+    assert statistics.median(rates) == pytest.approx(200, rel=0.2)
 
     # Our codec decodes the SDK's frames to the same angles.
     sent = [m for m in iter(lambda: monitor.recv(timeout=0), None) if m.arbitration_id == 0x155]
