@@ -38,6 +38,7 @@ import numpy as np
 
 from lerobot_cso.cso.spo import run_spo
 from lerobot_cso.durable import write_atomic
+from lerobot_cso.errors import UsageError, parse_errors_as_usage_errors
 from lerobot_cso.evaluation import evaluate
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.rollout.pool import kept_pools
@@ -54,8 +55,10 @@ T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantil
 
 
 def pipeline_config(path: Path, overrides: list[str]) -> PipelineConfig:
-    """The pipeline config of the file at ``path`` with ``overrides`` (``--section.setting=value``) applied."""
-    return draccus.parse(PipelineConfig, args=[f"--config_path={path}", *overrides])
+    """The pipeline config of the file at ``path`` with ``overrides`` (``--section.setting=value``) applied; a
+    setting the config does not have raises ``UsageError``."""
+    with parse_errors_as_usage_errors():
+        return draccus.parse(PipelineConfig, args=[f"--config_path={path}", *overrides])
 
 
 def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
@@ -222,12 +225,17 @@ def main() -> int:
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
     args, overrides = parser.parse_known_args()
     command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
-    cfg = pipeline_config(args.config, overrides)
-    results = load(args.results, command, config_spec(cfg))
-    started = time.perf_counter()
     methods = tuple(args.methods.split(","))
     if unknown := sorted(set(methods) - set(METHODS)):
         parser.error(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
+    if not args.config.is_file():
+        parser.error(f"no config file {args.config}")
+    try:
+        cfg = pipeline_config(args.config, overrides)
+    except UsageError as e:
+        parser.error(str(e))
+    results = load(args.results, command, config_spec(cfg))
+    started = time.perf_counter()
     finished = sum(len(e["per_seed"]) for e in results["methods"].values())
     with kept_pools():
         for seed in (int(s) for s in args.seeds.split(",")):

@@ -7,17 +7,14 @@ what the argument parser rejects (an unknown ``--robot.type``, a misspelt option
 """
 
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from typing import NoReturn
+from collections.abc import Callable
 
-from draccus.wrappers.suppressing_argparse import SuppressingArgumentParser
 from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_cso.cso.rsft import rsft_main
 from lerobot_cso.cso.spo import spo_main
 from lerobot_cso.demos import demos_main
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, parse_errors_as_usage_errors
 from lerobot_cso.evaluation import eval_main
 from lerobot_cso.pipeline import pipeline_main
 
@@ -35,21 +32,6 @@ def _usage() -> str:
     return f"usage: lerobot-cso {{{names}}} [--key=value ...] [--config_path=FILE.yaml]  (--help per subcommand)"
 
 
-@contextmanager
-def _parse_errors_as_usage_errors() -> Iterator[None]:
-    """Make draccus's parser raise its error as a ``UsageError`` instead of printing every option first."""
-
-    def error(parser: SuppressingArgumentParser, message: str) -> NoReturn:
-        raise UsageError(message)
-
-    original = SuppressingArgumentParser.error
-    SuppressingArgumentParser.error = error  # type: ignore[method-assign]
-    try:
-        yield
-    finally:
-        SuppressingArgumentParser.error = original  # type: ignore[method-assign]
-
-
 def main(argv: list[str] | None = None) -> int:
     """Dispatch on the first argument; the rest is parsed by the subcommand's config (LeRobot style)."""
     args = sys.argv[1:] if argv is None else argv
@@ -64,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
     register_third_party_plugins()
     try:
-        with _parse_errors_as_usage_errors():
+        with parse_errors_as_usage_errors():
             command()
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1,6 +1,8 @@
 """`lerobot-cso pipeline` as a real subprocess: a tiny end-to-end run, a rerun that skips every stage, bad configs."""
 
 import dataclasses
+import functools
+import importlib.util
 import json
 import os
 import subprocess
@@ -223,20 +225,28 @@ def test_a_record_made_before_a_setting_existed_matches_that_settings_behave_as_
     assert runner.execute(longer)["iterations"] == 20 and longer.runs == 1  # still continues
 
 
-def test_committed_mw_proxy_results_resume_with_their_own_config():
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def mw_proxy():
+    """``benchmarks/mw_proxy.py`` as a module."""
+    spec = importlib.util.spec_from_file_location("mw_proxy", ROOT / "benchmarks" / "mw_proxy.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
     """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default), mw_proxy_n200.json
     from it with --rsft.successes_per_task=200 and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
     config is that file's spec (settings added later, at their behave-as-before values, left out); another config
     is refused; a resuming command is appended to the file's commands, its latest one is not repeated."""
-    import importlib.util
-
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("mw_proxy", root / "benchmarks" / "mw_proxy.py")
-    mw_proxy = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mw_proxy)
+    root = ROOT
+    parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(root / "configs" / name, list(overrides)))
 
     def config(name: str, *overrides: str, **changes) -> dict:
-        cfg = dataclasses.replace(mw_proxy.pipeline_config(root / "configs" / name, list(overrides)), **changes)
+        cfg = dataclasses.replace(parse(name, overrides), **changes)
         return json.loads(json.dumps(mw_proxy.config_spec(cfg), default=str))
 
     n200 = ("--rsft.successes_per_task=200",)
@@ -271,3 +281,27 @@ def test_committed_mw_proxy_results_resume_with_their_own_config():
                 mw_proxy.load(path, "test", other)
     # Settings given on the command line over --config reach the config.
     assert mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", list(n200)).rsft.successes_per_task == 200
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--rsft.nosuch=1"], "mw_proxy.py: error: unrecognized arguments: --rsft.nosuch=1"),
+        (["--config=configs/nosuch.yaml"], "mw_proxy.py: error: no config file configs/nosuch.yaml"),
+        (
+            ["--methods=il,nosuch"],
+            "mw_proxy.py: error: unknown methods ['nosuch']; known: il, rsft, spo_only, cso, token, trajectory, ript",
+        ),
+    ],
+)
+def test_mw_proxy_bad_input_is_one_error_line_after_its_usage(mw_proxy, monkeypatch, capsys, tmp_path, args, message):
+    """A bad setting over --config is the driver's own usage and one error line, not draccus's every option, and
+    writes no results file."""
+    results = tmp_path / "results.json"
+    monkeypatch.chdir(ROOT)
+    monkeypatch.setattr(sys, "argv", ["mw_proxy.py", f"--results={results}", f"--work={tmp_path}", *args])
+    with pytest.raises(SystemExit) as exit_:
+        mw_proxy.main()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_.value.code == 2 and err[0].startswith("usage: mw_proxy.py") and err[-1] == message
+    assert len(err) <= 3 and not results.exists()
