@@ -1,4 +1,5 @@
-"""The error type for bad user input: ``lerobot-cso`` prints its message as one line and exits non-zero."""
+"""Bad user input: ``UsageError``, whose message ``lerobot-cso`` prints as one line before exiting non-zero, and
+draccus's parse errors turned into it."""
 
 from collections.abc import Iterator
 from contextlib import contextmanager

@@ -242,8 +242,7 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
     from it with --rsft.successes_per_task=200 and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
     config is that file's spec (settings added later, at their behave-as-before values, left out); another config
     is refused; a resuming command is appended to the file's commands, its latest one is not repeated."""
-    root = ROOT
-    parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(root / "configs" / name, list(overrides)))
+    parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(ROOT / "configs" / name, list(overrides)))
 
     def config(name: str, *overrides: str, **changes) -> dict:
         cfg = dataclasses.replace(parse(name, overrides), **changes)
@@ -270,7 +269,7 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
             3,
         ),
     ):
-        path = root / "benchmarks" / "results" / results
+        path = ROOT / "benchmarks" / "results" / results
         loaded = mw_proxy.load(path, "test", own)
         assert len(loaded["methods"]["cso"]["per_seed"]) == seeds
         last = loaded["command"].split("; ")[-2]  # the file's latest command, then this one appended
@@ -280,7 +279,7 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
     # Settings given on the command line over --config reach the config.
-    assert mw_proxy.pipeline_config(root / "configs" / "metaworld_demo.yaml", list(n200)).rsft.successes_per_task == 200
+    assert mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", list(n200)).rsft.successes_per_task == 200
 
 
 @pytest.mark.parametrize(
