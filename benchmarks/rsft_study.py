@@ -48,9 +48,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "cap2_stop": {"max_successes_per_state": 2, "stop_state_at_cap": True},
     "cap2_adv": {"max_successes_per_state": 2, "advantage_weighted": True},
     "cap2_n200": {"max_successes_per_state": 2, "successes_per_task": 200},
+    "cap2_n200_adv": {"max_successes_per_state": 2, "successes_per_task": 200, "advantage_weighted": True},
 }
 # Variants that differ from another only in the fine-tune start from a copy of its collection (same spec).
-COLLECTION_FROM = {"cap2_demos50": "cap2", "cap2_lr3e4": "cap2", "cap2_adv": "cap2"}
+COLLECTION_FROM = {
+    "cap2_demos50": "cap2",
+    "cap2_lr3e4": "cap2",
+    "cap2_adv": "cap2",
+    "cap2_n200_adv": "cap2_n200",
+}
 
 
 def timed_rsft(
