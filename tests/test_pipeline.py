@@ -239,7 +239,8 @@ def mw_proxy():
 
 def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
     """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default), mw_proxy_n200.json
-    from it with --rsft.successes_per_task=200 and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
+    from it with --rsft.successes_per_task=200, mw_proxy_n200_adv.json with that and
+    --rsft.advantage_weighted=true, and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
     config is that file's spec (settings added later, at their behave-as-before values, left out); another config
     is refused; a resuming command is appended to the file's commands, its latest one is not repeated."""
     parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(ROOT / "configs" / name, list(overrides)))
@@ -262,6 +263,12 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
             5,
         ),
         ("mw_proxy_n200.json", config("metaworld_demo.yaml", *n200), [config("metaworld_demo.yaml")], 5),
+        (
+            "mw_proxy_n200_adv.json",
+            config("metaworld_demo.yaml", *n200, "--rsft.advantage_weighted=true"),
+            [config("metaworld_demo.yaml", *n200), config("metaworld_demo.yaml", "--rsft.advantage_weighted=true")],
+            5,
+        ),
         (
             "mw_proxy_s7.json",
             config("mw_proxy.yaml"),
