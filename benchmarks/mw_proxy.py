@@ -13,7 +13,7 @@ Each finished (method, seed) is written at once to ``--results`` (default
 again, from this clone or another; unfinished stages resume from ``--work`` (their own records). All the
 rollout stages of a run share their env pools (:func:`~lerobot_cso.rollout.pool.kept_pools`), as in the pipeline.
 
-    python benchmarks/mw_proxy.py             # the demo's config (configs/metaworld_demo.yaml), seeds 0-2
+    python benchmarks/mw_proxy.py             # configs/mw_proxy.yaml, seeds 0-2
     python benchmarks/mw_proxy.py --seeds=0   # one seed
     python benchmarks/mw_proxy.py --methods=il,rsft,cso   # the pipelines of every seed first
 
@@ -218,7 +218,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", type=Path, default=Path("configs/metaworld_demo.yaml"))
+    parser.add_argument("--config", type=Path, default=Path("configs/mw_proxy.yaml"))
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--methods", default=",".join(METHODS), help="a subset runs first (il, rsft, cso always)")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))

@@ -238,47 +238,50 @@ def mw_proxy():
 
 
 def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
-    """benchmarks/results/mw_proxy.json resumes from the demo's config (the driver's default), mw_proxy_n200.json
-    from it with --rsft.successes_per_task=200, mw_proxy_n200_adv.json with that and
-    --rsft.advantage_weighted=true, and mw_proxy_s7.json from configs/mw_proxy.yaml: each recorded
-    config is that file's spec (settings added later, at their behave-as-before values, left out); another config
-    is refused; a resuming command is appended to the file's commands, its latest one is not repeated."""
+    """benchmarks/results/mw_proxy.json resumes from configs/mw_proxy.yaml (the driver's default: the demo's config
+    with --rsft.successes_per_task=200 --rsft.advantage_weighted=true, nothing else), mw_proxy_demo.json from the
+    demo's config, mw_proxy_n200.json from it with --rsft.successes_per_task=200, and mw_proxy_s7.json from
+    configs/mw_proxy_s7.yaml: each recorded config is that file's spec (settings added later, at their
+    behave-as-before values, left out); another config is refused; a resuming command is appended to the file's
+    commands, its latest one is not repeated."""
     parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(ROOT / "configs" / name, list(overrides)))
 
     def config(name: str, *overrides: str, **changes) -> dict:
         cfg = dataclasses.replace(parse(name, overrides), **changes)
         return json.loads(json.dumps(mw_proxy.config_spec(cfg), default=str))
 
-    n200 = ("--rsft.successes_per_task=200",)
+    n200, adv = "--rsft.successes_per_task=200", "--rsft.advantage_weighted=true"
+    assert config("mw_proxy.yaml") == config("metaworld_demo.yaml", n200, adv)
 
     for results, own, others, seeds in (
         (
             "mw_proxy.json",
+            config("mw_proxy.yaml"),
+            [config("metaworld_demo.yaml"), config("metaworld_demo.yaml", n200), config("metaworld_demo.yaml", adv)],
+            5,
+        ),
+        (
+            "mw_proxy_demo.json",
             config("metaworld_demo.yaml"),
             [
                 config("metaworld_demo.yaml", train_threads=1),
+                config("mw_proxy_s7.yaml"),
+                config("metaworld_demo.yaml", n200),
                 config("mw_proxy.yaml"),
-                config("metaworld_demo.yaml", *n200),
             ],
             5,
         ),
-        ("mw_proxy_n200.json", config("metaworld_demo.yaml", *n200), [config("metaworld_demo.yaml")], 5),
-        (
-            "mw_proxy_n200_adv.json",
-            config("metaworld_demo.yaml", *n200, "--rsft.advantage_weighted=true"),
-            [config("metaworld_demo.yaml", *n200), config("metaworld_demo.yaml", "--rsft.advantage_weighted=true")],
-            5,
-        ),
+        ("mw_proxy_n200.json", config("metaworld_demo.yaml", n200), [config("metaworld_demo.yaml")], 5),
         (
             "mw_proxy_s7.json",
-            config("mw_proxy.yaml"),
-            [config("mw_proxy.yaml", train_threads=2), config("metaworld_demo.yaml")],
+            config("mw_proxy_s7.yaml"),
+            [config("mw_proxy_s7.yaml", train_threads=2), config("metaworld_demo.yaml")],
             3,
         ),
     ):
         path = ROOT / "benchmarks" / "results" / results
         loaded = mw_proxy.load(path, "test", own)
-        assert len(loaded["methods"]["cso"]["per_seed"]) == seeds
+        assert {m: len(e["per_seed"]) for m, e in loaded["methods"].items()} == dict.fromkeys(mw_proxy.METHODS, seeds)
         last = loaded["command"].split("; ")[-2]  # the file's latest command, then this one appended
         assert loaded["command"] == json.loads(path.read_text())["command"] + "; test"
         assert mw_proxy.load(path, last, own)["command"] == json.loads(path.read_text())["command"]
@@ -286,7 +289,7 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
     # Settings given on the command line over --config reach the config.
-    assert mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", list(n200)).rsft.successes_per_task == 200
+    assert mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", [n200]).rsft.successes_per_task == 200
 
 
 @pytest.mark.parametrize(
