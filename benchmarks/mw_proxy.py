@@ -62,13 +62,14 @@ def pipeline_config(path: Path, overrides: list[str]) -> PipelineConfig:
 
 
 def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
-    """The settings the results depend on: the config without its output paths (some default to a timestamp)
-    and without the settings added later at their behave-as-before values (so earlier results stay valid)."""
+    """The settings the results depend on: the config without its output paths (some default to a timestamp),
+    its seed (the driver's) and ``stop_after``, and without the settings added later at their behave-as-before
+    values (so earlier results stay valid)."""
 
     def strip(value: Any) -> Any:
         return {k: strip(v) for k, v in value.items() if k != "output_dir"} if isinstance(value, dict) else value
 
-    return without_added_settings(strip(settings_spec(cfg, exclude=("seed",))))
+    return without_added_settings(strip(settings_spec(cfg, exclude=("seed", "stop_after"))))
 
 
 def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
@@ -234,6 +235,8 @@ def main() -> int:
         cfg = pipeline_config(args.config, overrides)
     except UsageError as e:
         parser.error(str(e))
+    if cfg.stop_after is not None:
+        parser.error("--stop_after: the MW-proxy runs every stage of each seed's pipeline")
     results = load(args.results, command, config_spec(cfg))
     started = time.perf_counter()
     finished = sum(len(e["per_seed"]) for e in results["methods"].values())

@@ -9,6 +9,8 @@ kept from and the successes per kept state. Finished variants are skipped on a r
 A variant that changes only the fine-tune (``COLLECTION_FROM``) fine-tunes a copy of another variant's
 collection; one that mixes in demonstrations takes those of the IL checkpoint's pipeline (``<out>/demos``).
 
+An IL checkpoint alone comes from the pipeline stopped after its IL stage (``./run.sh demo --stop_after=il``).
+
     python benchmarks/rsft_study.py --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
         --output_dir=outputs/rsft_study --variants=keep_all,cap2
 """

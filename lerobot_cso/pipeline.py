@@ -21,7 +21,8 @@ complete is skipped; an unfinished one is run
 again and resumes by itself (demos and R-SFT from their journals, SPO from its last iteration, IL with
 ``lerobot-train --resume=true`` from its last checkpoint). A stage whose settings, or whose upstream stage's
 completion, differ from the record is refused (evaluations are simply redone), so stale results are never
-mixed with new ones.
+mixed with new ones. ``stop_after`` ends a run after one stage (e.g. ``--stop_after=il`` for an IL checkpoint and
+nothing else); the same command without it continues from there.
 
 The rollout stages (the evaluations, R-SFT, SPO) run inside :func:`~lerobot_cso.rollout.pool.kept_pools`: stages
 with the same rollout settings share one env pool, whose worker processes and MuJoCo models are built once.
@@ -56,6 +57,7 @@ from lerobot_cso.stage import PIPELINE_FIELDS, Stage, without_added_settings
 
 SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
 EVALUATED = {"il": "IL", "rsft": "R-SFT", "cso": "CSO"}  # evaluation name → table column
+STAGES = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")  # in the order they run
 
 
 @dataclass
@@ -74,6 +76,8 @@ class PipelineConfig:
     # Training seed of the whole run: when set, it replaces demos.seed, rsft.seed and spo.seed, and il.seed
     # becomes 1000 + seed (evaluation states stay those of eval.seeds). null: each section's own seed.
     seed: int | None = None
+    # The last stage to run (one of STAGES); null: every stage. The later stages are left for a rerun without it.
+    stop_after: str | None = None
     demos: DemosConfig = field(default_factory=DemosConfig)
     il: ILConfig = field(default_factory=ILConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -108,6 +112,10 @@ def check_sections(args: list[str], config_path: str | None) -> None:
         )
 
 
+class StoppedAfter(Exception):
+    """Raised by :meth:`Pipeline.execute` once the stage named by ``stop_after`` is complete."""
+
+
 class Pipeline:
     """The stages of one pipeline config, each run or skipped according to its record."""
 
@@ -129,6 +137,8 @@ class Pipeline:
         for name in ("torch_threads", "train_threads"):
             if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
                 raise UsageError(f"{name} must be >= 1 or null, got {getattr(cfg, name)}")
+        if cfg.stop_after not in (None, *STAGES):
+            raise UsageError(f"stop_after must be one of {', '.join(STAGES)} or null, got {cfg.stop_after!r}")
         self.seconds: dict[str, float] = {}
         self.validate()
 
@@ -181,7 +191,14 @@ class Pipeline:
     def execute(self, stage: Stage, after: str | None = None) -> Any:
         """Run ``stage`` unless its record (same spec, ``after`` the same run of its upstream stage) says it
         completed and it is complete; a changed spec over an existing output is refused unless the stage
-        is simply redone (``redo_on_change``) or only grows in one of the stage's ``grows`` keys (it continues)."""
+        is simply redone (``redo_on_change``) or only grows in one of the stage's ``grows`` keys (it continues).
+        Raises :class:`StoppedAfter` when ``stage`` is the config's ``stop_after``."""
+        summary = self._execute(stage, after)
+        if stage.name == self.cfg.stop_after:
+            raise StoppedAfter(stage.name)
+        return summary
+
+    def _execute(self, stage: Stage, after: str | None) -> Any:
         spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
         output, record = stage.output(), read_json(self.record_path(stage.name))
         current = without_added_settings(spec)
@@ -225,7 +242,15 @@ class Pipeline:
         return stage.success_rate()
 
     def run(self) -> dict[str, Any]:
-        """All stages in order; returns the results (also written to ``results.md`` / ``results.json``)."""
+        """All stages in order; returns the results (also written to ``results.md`` / ``results.json``), or, with
+        ``stop_after``, ``{"stopped_after": stage, "stage_seconds": ...}`` once that stage is complete."""
+        try:
+            return self._run()
+        except StoppedAfter as stop:
+            print(f"[pipeline] stopped after {stop} (stop_after); the same command without it continues", flush=True)
+            return {"stopped_after": str(stop), "stage_seconds": self.seconds}
+
+    def _run(self) -> dict[str, Any]:
         started = time.perf_counter()
         if self.cfg.torch_threads:
             torch.set_num_threads(self.cfg.torch_threads)

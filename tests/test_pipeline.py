@@ -65,11 +65,18 @@ def tiny_config(tmp_path: Path) -> Path:
     return path
 
 
-def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
-    first = pipeline(f"--config_path={tiny_config}")
-    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
-    assert all(f"[pipeline] {stage}: running" in first.stdout for stage in STAGES)
+def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_config, tmp_path):
     out = tmp_path / "run"
+    stopped = pipeline(f"--config_path={tiny_config}", "--stop_after=eval_il")
+    assert stopped.returncode == 0, stopped.stdout[-3000:] + stopped.stderr[-3000:]
+    assert [s for s in STAGES if f"[pipeline] {s}: running" in stopped.stdout] == ["demos", "il", "eval_il"]
+    assert "[pipeline] stopped after eval_il (stop_after)" in stopped.stdout
+    assert not (out / "rsft").exists() and not (out / "results.json").exists()
+
+    first = pipeline(f"--config_path={tiny_config}")  # the same command without stop_after continues
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    assert all(f"[pipeline] {stage}: complete, skipped" in first.stdout for stage in STAGES[:3])
+    assert all(f"[pipeline] {stage}: running" in first.stdout for stage in STAGES[3:])
     results = json.loads((out / "results.json").read_text())
     table = final_table(first.stdout)
     print(table)
@@ -106,6 +113,7 @@ def test_end_to_end_then_rerun_skips_every_stage(tiny_config, tmp_path):
         (["--train_threads=0"], "train_threads must be >= 1 or null, got 0"),
         (["--spo.train_threads=0"], "train_threads must be >= 1 or null, got 0"),
         (["--eval.train_threads=2"], "unrecognized arguments: --eval.train_threads=2"),  # evaluation trains nothing
+        (["--stop_after=eval"], "stop_after must be one of demos, il, eval_il, rsft, eval_rsft, spo, eval_cso or null"),
     ],
 )
 def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path, args, message, capsys, monkeypatch):
@@ -300,6 +308,10 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
         (
             ["--methods=il,nosuch"],
             "mw_proxy.py: error: unknown methods ['nosuch']; known: il, rsft, spo_only, cso, token, trajectory, ript",
+        ),
+        (
+            ["--stop_after=il"],
+            "mw_proxy.py: error: --stop_after: the MW-proxy runs every stage of each seed's pipeline",
         ),
     ],
 )
