@@ -76,7 +76,8 @@ class PipelineConfig:
     # Training seed of the whole run: when set, it replaces demos.seed, rsft.seed and spo.seed, and il.seed
     # becomes 1000 + seed (evaluation states stay those of eval.seeds). null: each section's own seed.
     seed: int | None = None
-    # The last stage to run (one of STAGES); null: every stage. The later stages are left for a rerun without it.
+    # The last stage to run (one of STAGES but the last); null: every stage. The later ones are left for a rerun
+    # without it.
     stop_after: str | None = None
     demos: DemosConfig = field(default_factory=DemosConfig)
     il: ILConfig = field(default_factory=ILConfig)
@@ -137,8 +138,8 @@ class Pipeline:
         for name in ("torch_threads", "train_threads"):
             if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
                 raise UsageError(f"{name} must be >= 1 or null, got {getattr(cfg, name)}")
-        if cfg.stop_after not in (None, *STAGES):
-            raise UsageError(f"stop_after must be one of {', '.join(STAGES)} or null, got {cfg.stop_after!r}")
+        if cfg.stop_after not in (None, *STAGES[:-1]):  # after the last stage is the whole run: null
+            raise UsageError(f"stop_after must be one of {', '.join(STAGES[:-1])} or null, got {cfg.stop_after!r}")
         self.seconds: dict[str, float] = {}
         self.validate()
 

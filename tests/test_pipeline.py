@@ -113,7 +113,7 @@ def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_con
         (["--train_threads=0"], "train_threads must be >= 1 or null, got 0"),
         (["--spo.train_threads=0"], "train_threads must be >= 1 or null, got 0"),
         (["--eval.train_threads=2"], "unrecognized arguments: --eval.train_threads=2"),  # evaluation trains nothing
-        (["--stop_after=eval"], "stop_after must be one of demos, il, eval_il, rsft, eval_rsft, spo, eval_cso or null"),
+        (["--stop_after=eval_cso"], "stop_after must be one of demos, il, eval_il, rsft, eval_rsft, spo or null"),
     ],
 )
 def test_bad_config_is_one_error_line_before_anything_runs(tiny_config, tmp_path, args, message, capsys, monkeypatch):
