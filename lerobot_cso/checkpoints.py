@@ -44,9 +44,17 @@ class PolicyPathConfig:
 
 
 def load_policy(path: str | Path, config: PreTrainedConfig | None = None) -> tuple[CSOPolicy, Any, Any]:
-    """A saved cso policy with its pre/post-processors (normalisation statistics of its training data)."""
+    """A saved cso policy with its pre/post-processors (normalisation statistics of its training data).
+
+    The preprocessor moves observations to the policy's device (``--policy.device``), whatever device the
+    checkpoint was saved from; the postprocessor returns actions on the CPU.
+    """
     policy = CSOPolicy.from_pretrained(path, config=config)
-    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    pre, post = make_pre_post_processors(
+        policy.config,
+        pretrained_path=str(path),
+        preprocessor_overrides={"device_processor": {"device": str(policy.config.device)}},
+    )
     return policy, pre, post
 
 

@@ -142,19 +142,14 @@ def write_outputs(output_dir: Path, rows: dict[str, Any], record: dict[str, Any]
 
 def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
     from lerobot_cso import distributed
+    from lerobot_cso.checkpoints import load_policy
     from lerobot_cso.rollout.engine import RolloutEngine
 
     tasks = cfg.validate()
     eval_seed_list = cfg.eval_seeds()
     path = cfg.policy.pretrained_path
-    policy = get_policy_class(cfg.policy.type).from_pretrained(path, config=cfg.policy)
-    device = str(policy.config.device)
-    pre, post = make_pre_post_processors(
-        policy.config, pretrained_path=str(path), preprocessor_overrides={"device_processor": {"device": device}}
-    )
+    policy, pre, post = load_policy(path, cfg.policy)
     world = cfg.world()
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
     episodes, throughput = [], []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -74,6 +75,10 @@ def test_batch_pads_decisions_and_broadcasts_group_advantages(rsft_policy, tmp_p
     torch.testing.assert_close(batch.advantages, torch.tensor([0.5, 0.5, -0.5, -0.5]))
     loo = spo.Batch.from_groups(groups, "ript").advantages  # leave-one-out: 1 - 1/3, 0 - 2/3
     torch.testing.assert_close(loo, torch.tensor([2 / 3, 2 / 3, -2 / 3, -2 / 3]))
+    # The rollouts keep contexts on the CPU; the batch goes to the policy's device ("meta" stands in for cuda).
+    on_device = spo.Batch.from_groups(groups, "skill", device="meta")
+    assert {t.device.type for t in dataclasses.astuple(on_device)} == {"meta"}
+    assert on_device.contexts.shape == batch.contexts.shape and on_device.mask.dtype == torch.bool
 
 
 @pytest.mark.parametrize("objective", ["skill", "token", "trajectory", "ript"])

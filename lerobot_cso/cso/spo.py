@@ -153,7 +153,8 @@ class Batch:
     advantages: torch.Tensor  # (N,)
 
     @classmethod
-    def from_groups(cls, groups: list[list[Episode]], objective: str) -> "Batch":
+    def from_groups(cls, groups: list[list[Episode]], objective: str, device: torch.device | str = "cpu") -> "Batch":
+        """The groups' episodes padded to the longest, on ``device`` (the policy's: rollouts keep them on the CPU)."""
         episodes = [e for g in groups for e in g]
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
         d_max = max(len(e.tokens) for e in episodes)
@@ -164,7 +165,8 @@ class Batch:
         for i, e in enumerate(episodes):
             d = len(e.tokens)
             contexts[i, :d], tokens[i, :d], mask[i, :d] = e.contexts, e.tokens, True
-        return cls(contexts, tokens, mask, advantages_for(objective, rewards).reshape(-1))
+        advantages = advantages_for(objective, rewards).reshape(-1)
+        return cls(*(t.to(device) for t in (contexts, tokens, mask, advantages)))
 
 
 def padded_logprobs(
@@ -383,7 +385,8 @@ def run_spo(
             generator.manual_seed(round_seed)
             if groups:
                 with cfg.training():
-                    stats |= update(cfg, policy, optimizer, Batch.from_groups(groups, cfg.objective), generator)
+                    batch = Batch.from_groups(groups, cfg.objective, policy.config.device)
+                    stats |= update(cfg, policy, optimizer, batch, generator)
             else:  # every group was uniform: nothing to learn from this iteration
                 stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
