@@ -417,6 +417,8 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
         # tracker would treat those as the caller's and never update them.
         meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
         meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
+        if torch.cuda.is_available():  # LeRobot's update_policy then records the peak GPU memory, as lerobot-train
+            meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
         tracker = MetricsTracker(cfg.batch_size, len(items), ds.num_episodes, meters, epoch * len(loader))
         for batch in tqdm(loader, desc=f"R-SFT epoch {epoch + 1}/{cfg.epochs}", leave=False):
             tracker, _ = update_policy(
