@@ -102,18 +102,21 @@ def main() -> None:
     ap.add_argument("--train_steps", type=int, default=200)
     ap.add_argument("--policy_path", type=Path, default=None)
     ap.add_argument("--vectorization", default="processes", help="of the policy rollouts (the experts: sync)")
+    ap.add_argument("--device", default="cpu", help="the policy's device (e.g. cuda)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     tasks = args.tasks.split(",")
 
-    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.configs.policies import PreTrainedConfig
 
-    from lerobot_cso.policy import CSOPolicy
+    from lerobot_cso.checkpoints import load_policy
 
     with tempfile.TemporaryDirectory() as tmp:
         path = args.policy_path or train_small_policy(args.tasks, args.train_steps, Path(tmp))
-        policy = CSOPolicy.from_pretrained(path).eval()
-        pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+        config = PreTrainedConfig.from_pretrained(path)
+        config.device = args.device
+        policy, pre, post = load_policy(path, config)
+        policy.eval()
     n_params = sum(p.numel() for p in policy.parameters())
 
     policy_states = [(t, s) for t in tasks for s in seeds.train_seeds(args.policy_episodes)]
@@ -162,7 +165,7 @@ def main() -> None:
         f"core); policy: {args.vectorization}"
     )
     print(f"tasks: {', '.join(tasks)}; envs: {args.num_envs}; max steps: {args.max_steps}; rounds: {args.rounds}")
-    print(f"policy: {path} ({n_params / 1e6:.2f} M parameters), top-k 5, T 1")
+    print(f"policy: {path} ({n_params / 1e6:.2f} M parameters) on {args.device}, top-k 5, T 1")
     print(
         f"scripted experts: {totals['expert'][0]} steps in {totals['expert'][1]:.1f} s = {expert_rate:.0f} steps/s "
         f"(mean episode {np.mean(lengths['expert']):.0f} steps)"
