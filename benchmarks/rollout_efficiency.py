@@ -32,6 +32,7 @@ from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.rollout.engine import RolloutEngine, Sampling
 from lerobot_cso.rollout.expert import ExpertController
 from lerobot_cso.rollout.pool import EnvPool, Job
+from lerobot_cso.rollout.sharded import ShardedVectorEnv
 
 SMALL_POLICY = [
     "--policy.ae_dim=128",
@@ -125,15 +126,12 @@ def main() -> None:
     episodes = {"expert": 0, "policy": 0}
     lengths: dict[str, list[float]] = {"expert": [], "policy": []}
     decisions, policy_seconds = 0, 0.0
+    policy_pool = EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization)
+    # The processes that step (and reset) the policy's envs in parallel.
+    workers = len(policy_pool.vec.shards) if isinstance(policy_pool.vec, ShardedVectorEnv) else 1
     with (
         EnvPool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
-        RolloutEngine(
-            policy,
-            pre,
-            post,
-            EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization),
-            task_description,
-        ) as engine,
+        RolloutEngine(policy, pre, post, policy_pool, task_description) as engine,
     ):
         expert_round(pool, expert_jobs[:: args.expert_episodes])  # warm-up: build every task's models
         engine.rollout(policy_states[:: args.policy_episodes], sampling=Sampling())
@@ -177,10 +175,13 @@ def main() -> None:
     )
     ratio = policy_rate / expert_rate
     print(f"rollout efficiency = {ratio:.2f} (policy with {args.vectorization} ÷ single-core experts; goal >= 1.6)")
-    # The experts finish episodes sooner, so they pay for more resets per step; without resets:
-    stepping = {k: totals[k][0] / (totals[k][1] - episodes[k] * reset_s) for k in totals}
+    # The experts finish episodes sooner, so they pay for more resets per step; without resets (an estimate: the
+    # policy's resets are spread evenly over its worker processes):
+    reset_time = {"expert": episodes["expert"] * reset_s, "policy": episodes["policy"] * reset_s / workers}
+    stepping = {k: totals[k][0] / (totals[k][1] - reset_time[k]) for k in totals}
     print(
-        f"without resets ({1000 * reset_s:.1f} ms each): expert {stepping['expert']:.0f}, policy "
+        f"without resets ({1000 * reset_s:.1f} ms each, policy over {workers} processes): expert "
+        f"{stepping['expert']:.0f}, policy "
         f"{stepping['policy']:.0f} steps/s, ratio {stepping['policy'] / stepping['expert']:.2f}"
     )
 
