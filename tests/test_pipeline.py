@@ -5,9 +5,9 @@ import functools
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import draccus
@@ -93,13 +93,15 @@ def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_con
     assert json.loads((out / "rsft" / "pretrained_model" / "config.json").read_text())["freeze_encoders"]
     assert len((out / "spo" / "log.jsonl").read_text().splitlines()) == 1  # one SPO iteration
 
-    started = time.perf_counter()
     second = pipeline(f"--config_path={tiny_config}")
     assert second.returncode == 0, second.stderr[-3000:]
     assert all(f"[pipeline] {stage}: complete, skipped" in second.stdout for stage in STAGES)
     assert ": running" not in second.stdout
     assert final_table(second.stdout) == table
-    assert time.perf_counter() - started < 60
+    # The pipeline's own time, after the imports (the command's wall time is mostly LeRobot's import: 20 s alone
+    # on a slow 2-core VM, 78 s there under the parallel suite): skipping every stage costs about a second.
+    done = re.search(r"\[pipeline\] done in (\d+) s", second.stdout)
+    assert done is not None and int(done.group(1)) <= 5
 
 
 @pytest.mark.parametrize(
