@@ -49,7 +49,15 @@ def test_driver_in_this_process_drives_the_emulator_process():
         driver.enable()
         target = (0.1, 0.3, -0.3, 0.0, 0.1, 0.0)
         assert wait_until(lambda: driver.command(target, 0.02).joints_rad == target, timeout=5.0)
-        assert wait_until(lambda: driver.state().joint_positions_rad == pytest.approx(target, abs=1e-4), timeout=5.0)
+
+        def reached() -> bool:
+            """The target, streamed at 100 Hz as a control loop does, has been reached. Over udp_multicast a
+            datagram can be lost: once, under the parallel suite on a slow 2-core VM, a target sent only until
+            the driver reported it sent was not reached in 5 s."""
+            driver.command(target, 0.02)
+            return driver.state().joint_positions_rad == pytest.approx(target, abs=1e-4)
+
+        assert wait_until(reached, timeout=5.0, period=0.01)
         assert wait_until(lambda: driver.state().firmware_version == "S-V1.8-2")
         assert wait_until(lambda: driver.state().rates_hz.get(0x2A5, 0) == pytest.approx(200, rel=0.25))
     finally:
