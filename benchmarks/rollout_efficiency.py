@@ -12,6 +12,7 @@ Without ``--policy_path`` a small cso policy is made first: scripted demos for t
 
     python benchmarks/rollout_efficiency.py                       # small policy, 4 tasks, 16 envs
     python benchmarks/rollout_efficiency.py --policy_path=outputs/train/.../pretrained_model
+    python benchmarks/rollout_efficiency.py --policy_path=... --device=cuda   # the policy's decisions on a GPU
 """
 
 import argparse
