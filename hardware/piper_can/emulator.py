@@ -75,12 +75,9 @@ class PiperEmulator:
         last = time.monotonic()
         next_tick = last + wall_period
         while not self._stop.is_set():
-            remaining = next_tick - time.monotonic()
-            while remaining > 0:
-                msg = self.bus.recv(timeout=remaining)
-                if msg is not None:
-                    self._receive(msg)
-                remaining = next_tick - time.monotonic()
+            # Every frame that has arrived is handled before the next cycle, even when the loop runs late.
+            while (msg := self.bus.recv(timeout=max(next_tick - time.monotonic(), 0.0))) is not None:
+                self._receive(msg)
             now = time.monotonic()
             self._advance(min((now - last) * cfg.rate_scale, _MAX_REAL_TIME_STEP_S))
             last = now

@@ -380,3 +380,37 @@ def test_real_time_mode_runs_at_the_scaled_rate_with_jitter():
     # 400 Hz nominal for 0.5 s, each cycle up to 1 ms late (mean 0.5 ms): ~167 frames; a busy machine
     # only ever makes fewer.
     assert 100 < status_frames <= 200
+
+
+def test_a_late_real_time_loop_still_handles_host_frames_at_once():
+    """A busy machine makes every cycle run late; host frames must not wait until the loop catches up."""
+    channel = unique_virtual_channel()
+    arm_bus, host_bus = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    emulator = PiperEmulator(arm_bus)
+    advance = emulator._advance
+
+    def slow_advance(dt: float) -> None:  # each cycle 1.5 periods of work: always behind, never 0.1 s behind
+        time.sleep(1.5 * PERIOD)  # for long (that would resynchronise)
+        advance(dt)
+
+    emulator._advance = slow_advance
+    try:
+        emulator.start()
+        time.sleep(0.1)  # the loop is now late on every cycle
+        latencies = []
+        for _ in range(5):
+            with emulator.locked() as firmware:
+                firmware.inject_fault("collision", 2)
+            sent = time.monotonic()
+            frame = encode(codec.JointConfig(7, clear_error=True))
+            host_bus.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
+            while emulator.firmware.arm_status != ArmStatusCode.NORMAL and time.monotonic() - sent < 2.0:
+                time.sleep(0.001)
+            latencies.append(time.monotonic() - sent)
+            time.sleep(0.05)
+    finally:
+        emulator.stop()
+        arm_bus.shutdown()
+        host_bus.shutdown()
+    # Handled within a cycle or two (~15 ms each); the old loop held frames until it fell 0.1 s behind.
+    assert max(latencies) < 0.05, latencies
