@@ -78,15 +78,20 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     status = sdk.GetArmStatus().arm_status
     assert (status.ctrl_mode, status.arm_status, status.mode_feed, status.motion_status) == (1, 0, 1, 0)
     # The SDK counts frames between wake-ups of a thread it assumes wakes every 0.1 s; on a loaded machine one
-    # late wake-up reads high (CI once read 310 Hz), so judge the median of seven of its windows.
-    rates = []
+    # late wake-up reads high (CI once read 310 Hz), so judge the median of seven of its windows. The emulator
+    # thread shares this process (and its GIL) with the SDK's parser, so a loaded machine also lowers the rate
+    # actually sent (135 Hz seen under three busy loops): compare with the joint frames sent meanwhile.
+    frames = list(iter(lambda: monitor.recv(timeout=0), None))
+    rates, started = [], time.monotonic()
     for _ in range(7):
         rates.append(sdk.GetArmJointMsgs().Hz)
         time.sleep(0.11)
-    assert statistics.median(rates) == pytest.approx(200, rel=0.2)
+    window = list(iter(lambda: monitor.recv(timeout=0), None))
+    sent_hz = sum(m.arbitration_id == 0x2A5 for m in window) / (time.monotonic() - started)
+    assert sent_hz > 50 and statistics.median(rates) == pytest.approx(sent_hz, rel=0.25)
 
     # Our codec decodes the SDK's frames to the same angles.
-    sent = [m for m in iter(lambda: monitor.recv(timeout=0), None) if m.arbitration_id == 0x155]
+    sent = [m for m in frames + window if m.arbitration_id == 0x155]
     assert decode_command(0x155, sent[-1].data) == JointCommand(1, (math.radians(10), math.radians(20)))
 
     # And it can switch our arm off.
