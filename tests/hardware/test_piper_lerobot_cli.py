@@ -165,11 +165,13 @@ def test_record_writes_two_episodes_of_the_leader_and_the_follower(recorded):
     tasks = pq.read_table(root / "meta" / "tasks.parquet").to_pylist()
     assert [t["task"] for t in tasks] == [TASK] and set(frames["task_index"]) == {0}
     # Each frame's state is read before its action is sent, so the next state is where this action
-    # asked the follower to be (after the first second, which walks from rest at 50 % speed).
+    # asked the follower to be (after the first second, which walks from rest at 50 % speed). The leader moves
+    # up to 0.016 rad per 30 fps frame: quiet, the median error was under 0.01 rad; in the full suite on a slow
+    # 2-core VM 0.015 (a frame late), so the tracking tolerance above; a wrong mapping, unit or sign is ~0.3 rad.
     episode, frame = frames["episode_index"], frames["frame_index"]
     settled = (episode[1:] == episode[:-1]) & (frame[:-1] >= 30)
     lag_errors = np.abs(states[1:, :6] - actions[:-1, :6])[settled]
-    assert np.median(lag_errors) < 0.01 and lag_errors.max() < 0.1, lag_errors.max()
+    assert np.median(lag_errors) < TRACKING_TOLERANCE_RAD and lag_errors.max() < STALL_TOLERANCE_RAD, lag_errors.max()
 
 
 def test_replay_sends_the_recorded_actions(recorded, arms, home):
