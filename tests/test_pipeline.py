@@ -99,9 +99,11 @@ def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_con
     assert ": running" not in second.stdout
     assert final_table(second.stdout) == table
     # The pipeline's own time, after the imports (the command's wall time is mostly LeRobot's import: 20 s alone
-    # on a slow 2-core VM, 78 s there under the parallel suite): skipping every stage costs about a second.
-    done = re.search(r"\[pipeline\] done in (\d+) s", second.stdout)
-    assert done is not None and int(done.group(1)) <= 5
+    # on a slow 2-core VM, 78 s there under the parallel suite): skipping every stage costs about a second (the
+    # results plot), the four stages it skips ~20 s. Judged against the run that did them, on the same loaded
+    # machine: an absolute 5 s read 6 s in CI under the parallel suite.
+    ran, skipped = (int(re.search(r"\[pipeline\] done in (\d+) s", run.stdout).group(1)) for run in (first, second))
+    assert skipped <= ran / 4, (skipped, ran)
 
 
 @pytest.mark.parametrize(
