@@ -493,13 +493,24 @@ class PiperDriver:
         self._reset_sent_at = sent_at
         self._may_be_high_follow = False
 
-        def reset_seen(s: ArmState) -> bool:  # a fresh status without the e-stop, fresh driver bits
+        # Frames sent after ours but before the firmware acted on it are fresh too and still show the old
+        # state: the reset counts once fresh feedback shows its effect (no e-stop, no blocking fault).
+        def reset_seen(s: ArmState) -> bool:
             if s.status is None or any(f is None or f.timestamp <= sent_at for f in (s.status, *s.low_speed)):
                 return False
-            return s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP
+            return s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP and not _blocking(s)
 
         if not self.link.wait_for(reset_seen, self.config.enable_timeout_s):
-            raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
+            state = self.link.state()
+            if state.status is not None and state.status.value.arm_status == ArmStatusCode.EMERGENCY_STOP:
+                raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
+            left = _blocking(state)
+            if not left:
+                raise EnableTimeoutError(
+                    f"PiPER on {self.link.where} sent no fresh status and driver-info feedback after a reset"
+                )
+            log.error("PiPER on %s still reports %s after a reset", self.link.where, "; ".join(map(str, left)))
+            raise FirmwareFaultError(left)
 
     def recover(self, how: str = Recovery.RESET) -> None:
         """Bring a faulted or e-stopped arm back: ``clear_errors`` or ``reset``, then re-enable."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import random
 import threading
@@ -456,6 +457,47 @@ def test_enable_brings_an_arm_e_stopped_by_someone_else_back_only_when_asked(rec
             rig.driver.enable()
             assert not rig.arm.estopped and rig.arm.enabled == (True,) * 6
             walk_to(rig.driver, POSE)
+
+
+def test_a_reset_counts_once_the_feedback_shows_its_effect(rig):
+    # Frames the firmware sends after our reset frame but before it acts on it are fresh and still show the
+    # fault (a loaded real-time run: piper-recover --reset exited on a stall the reset had just cleared).
+    # Here the firmware acts on 0x150 ten cycles (50 ms, two low-speed periods) after it arrives.
+    held: list[can.Message] = []
+    cycles = itertools.count()
+    receive, advance = rig.emulator._receive, rig.emulator._advance
+
+    def receive_late(msg: can.Message) -> None:
+        held.append(msg) if msg.arbitration_id == 0x150 else receive(msg)
+
+    def advance_then_release(dt: float) -> None:
+        advance(dt)
+        if held and next(cycles) >= 10:
+            receive(held.pop(0))
+
+    rig.emulator._receive, rig.emulator._advance = receive_late, advance_then_release
+    with rig.emulator.locked() as arm:
+        arm.inject_fault("stall", 2)
+    assert rig.until(lambda: rig.driver.state().faults() != ())
+    rig.driver.recover("reset")
+    assert rig.driver.checked_state().faults() == ()
+    assert rig.arm.enabled == (True,) * 6
+    walk_to(rig.driver, POSE)
+
+
+def test_a_reset_that_leaves_a_fault_is_one_clear_error(rig):
+    with rig.emulator.locked() as arm:
+        arm.inject_fault("stall", 2)
+    assert rig.until(lambda: rig.driver.state().faults() != ())
+    rig.emulator._receive = lambda msg: None  # the firmware hears nothing: the reset changes nothing
+    with pytest.raises(FirmwareFaultError, match=r"joint_2: stall protection triggered"):
+        rig.driver.reset()
+
+
+def test_a_reset_without_fresh_driver_feedback_is_one_clear_error(rig):
+    rig.arm.drop_ids = set(range(0x261, 0x267))  # the driver-info frames stop
+    with pytest.raises(EnableTimeoutError, match="sent no fresh status and driver-info feedback after a reset"):
+        rig.driver.reset()
 
 
 HEALTHY = "faults: none; mode CAN/J; enabled joints 1-6 + gripper: 1111111"
