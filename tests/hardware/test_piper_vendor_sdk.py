@@ -80,7 +80,9 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     # The SDK counts frames between wake-ups of a thread it assumes wakes every 0.1 s; on a loaded machine one
     # late wake-up reads high (CI once read 310 Hz), so judge the median of seven of its windows. The emulator
     # thread shares this process (and its GIL) with the SDK's parser, so a loaded machine also lowers the rate
-    # actually sent (135 Hz seen under three busy loops): compare with the joint frames sent meanwhile.
+    # actually sent (135 Hz seen under three busy loops): compare with the joint frames sent meanwhile. The two
+    # threads run late independently (the SDK read 200 Hz while 156 Hz were sent, hardware tests on two workers),
+    # so within 40 %: what this catches is the SDK counting only some of our frames (every other one: 2×).
     frames = list(iter(lambda: monitor.recv(timeout=0), None))
     rates, started = [], time.monotonic()
     for _ in range(7):
@@ -88,7 +90,7 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
         time.sleep(0.11)
     window = list(iter(lambda: monitor.recv(timeout=0), None))
     sent_hz = sum(m.arbitration_id == 0x2A5 for m in window) / (time.monotonic() - started)
-    assert sent_hz > 50 and statistics.median(rates) == pytest.approx(sent_hz, rel=0.25)
+    assert sent_hz > 50 and statistics.median(rates) == pytest.approx(sent_hz, rel=0.4)
 
     # Our codec decodes the SDK's frames to the same angles.
     sent = [m for m in frames + window if m.arbitration_id == 0x155]
