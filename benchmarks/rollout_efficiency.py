@@ -127,13 +127,13 @@ def main() -> None:
     episodes = {"expert": 0, "policy": 0}
     lengths: dict[str, list[float]] = {"expert": [], "policy": []}
     decisions, policy_seconds = 0, 0.0
-    policy_pool = EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization)
-    # The processes that step (and reset) the policy's envs in parallel.
-    workers = len(policy_pool.vec.shards) if isinstance(policy_pool.vec, ShardedVectorEnv) else 1
     with (
+        EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization) as policy_pool,
         EnvPool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
         RolloutEngine(policy, pre, post, policy_pool, task_description) as engine,
     ):
+        # The processes that step (and reset) the policy's envs in parallel.
+        workers = len(policy_pool.vec.shards) if isinstance(policy_pool.vec, ShardedVectorEnv) else 1
         expert_round(pool, expert_jobs[:: args.expert_episodes])  # warm-up: build every task's models
         engine.rollout(policy_states[:: args.policy_episodes], sampling=Sampling())
         for r in range(args.rounds):
