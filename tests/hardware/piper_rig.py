@@ -13,7 +13,7 @@ import random
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import can
@@ -100,24 +100,31 @@ def make_rig(
     config = DriverConfig(interface="virtual", channel=channel, bus_options=bus_options, **driver_options)
     driver = PiperDriver(config, clock)
     rig = Rig(channel, emulator, driver, monitor, clock, [emulator_bus, monitor])
-    # A full garbage collection stops every thread of this (torch-sized) test process for up to a few
-    # hundred ms, the emulated arm included, which the watchdog would rightly call stale feedback. A
-    # real arm keeps talking through our GC pauses, and the reader drains what queued up meanwhile.
-    gc_was_enabled = gc.isenabled()
-    if real_time:
-        gc.disable()
+    with gc_paused() if real_time else nullcontext():
+        try:
+            if connect:
+                driver.connect()
+                if enable:
+                    driver.enable()
+            yield rig
+        finally:
+            driver.close()
+            emulator.stop()
+            for bus in rig.buses:
+                bus.shutdown()
+
+
+@contextmanager
+def gc_paused() -> Iterator[None]:
+    """No garbage collection in the block. A full collection stops every thread of this (torch-sized) test
+    process for up to a few hundred ms, an emulated arm's real-time loop included, which the watchdog would
+    rightly call stale feedback; a real arm keeps talking through our GC pauses."""
+    was_enabled = gc.isenabled()
+    gc.disable()
     try:
-        if connect:
-            driver.connect()
-            if enable:
-                driver.enable()
-        yield rig
+        yield
     finally:
-        driver.close()
-        emulator.stop()
-        for bus in rig.buses:
-            bus.shutdown()
-        if gc_was_enabled:
+        if was_enabled:
             gc.enable()
 
 

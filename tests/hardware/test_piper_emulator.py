@@ -26,7 +26,7 @@ from piper_can.codec import (
 )
 from piper_can.emulator import PiperEmulator
 from piper_can.firmware import EmulatorConfig, PiperFirmware
-from piper_rig import unique_virtual_channel
+from piper_rig import gc_paused, unique_virtual_channel
 
 PERIOD = 0.005
 
@@ -395,50 +395,53 @@ def test_a_late_real_time_loop_still_handles_host_frames_at_once():
 
     emulator._advance = slow_advance
     try:
-        emulator.start()
-        time.sleep(0.1)  # the loop is now late on every cycle
-        latencies = []
-        for _ in range(5):
-            with emulator.locked() as firmware:
-                firmware.inject_fault("collision", 2)
-            sent = time.monotonic()
-            frame = encode(codec.JointConfig(7, clear_error=True))
-            host_bus.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
-            while emulator.firmware.arm_status != ArmStatusCode.NORMAL and time.monotonic() - sent < 2.0:
-                time.sleep(0.001)
-            latencies.append(time.monotonic() - sent)
-            time.sleep(0.05)
+        with gc_paused():  # a collection would stop the emulator's thread for up to a few hundred ms
+            emulator.start()
+            time.sleep(0.1)  # the loop is now late on every cycle
+            latencies = []
+            for _ in range(5):
+                with emulator.locked() as firmware:
+                    firmware.inject_fault("collision", 2)
+                sent = time.monotonic()
+                frame = encode(codec.JointConfig(7, clear_error=True))
+                host_bus.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
+                while emulator.firmware.arm_status != ArmStatusCode.NORMAL and time.monotonic() - sent < 2.0:
+                    time.sleep(0.001)
+                latencies.append(time.monotonic() - sent)
+                time.sleep(0.05)
     finally:
         emulator.stop()
         arm_bus.shutdown()
         host_bus.shutdown()
-    # Handled within a cycle or two (~8 ms each). The old loop read frames only while its next cycle was still in
-    # the future, which a loop this slow never reaches (every one waited the full 2 s).
-    assert max(latencies) < 0.05, latencies
+    # Handled within a cycle or two (~8 ms each; 0.25 s leaves room for a loaded machine's scheduling). The old
+    # loop read frames only while its next cycle was still in the future, which a loop this slow never reaches
+    # (every one waited the full 2 s).
+    assert max(latencies) < 0.25, latencies
 
 
 def test_a_real_time_loop_held_up_sends_the_cycles_it_owes():
-    """Held up 40 ms in every 50 (a busy machine), the loop still sends one cycle per period on average, as a
+    """Held up 30 ms in every 50 (a busy machine), the loop still sends one cycle per period on average, as a
     real arm fills the socket buffer of a host that stopped reading."""
     channel = unique_virtual_channel()
     arm_bus, host_bus = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
     emulator = PiperEmulator(arm_bus, EmulatorConfig(profile="light"))
     try:
-        emulator.start()
-        time.sleep(0.05)
-        while host_bus.recv(timeout=0) is not None:
-            pass
-        started = time.monotonic()
-        for _ in range(20):
-            with emulator.locked():
-                time.sleep(0.04)
-            time.sleep(0.01)
-        elapsed = time.monotonic() - started
-        frames = list(iter(lambda: host_bus.recv(timeout=0), None))
+        with gc_paused():  # a collection would stop the emulator's thread for up to a few hundred ms
+            emulator.start()
+            time.sleep(0.05)
+            while host_bus.recv(timeout=0) is not None:
+                pass
+            started = time.monotonic()
+            for _ in range(20):
+                with emulator.locked():
+                    time.sleep(0.03)
+                time.sleep(0.02)
+            elapsed = time.monotonic() - started
+            frames = list(iter(lambda: host_bus.recv(timeout=0), None))
     finally:
         emulator.stop()
         arm_bus.shutdown()
         host_bus.shutdown()
     cycles = sum(m.arbitration_id == 0x2A1 for m in frames)
-    # 200 Hz over `elapsed` (≥ 1 s); a loop that skipped owed cycles sent 80 (measured with the resync at 0 s).
+    # 200 Hz over `elapsed` (≥ 1 s); a loop that skipped owed cycles sent 120 (measured with the resync at 0 s).
     assert cycles == pytest.approx(elapsed / PERIOD, rel=0.1)
