@@ -156,7 +156,9 @@ def test_record_writes_two_episodes_of_the_leader_and_the_follower(recorded):
     assert info["features"]["observation.state"]["names"] == names
     frames = read_frames(root)
     actions, states = frames["action"], frames["observation.state"]
-    assert sorted(set(frames["episode_index"])) == [0, 1] and 100 <= len(actions) <= 125  # 2 x 2 s at 30 fps
+    # 2 x 2 s at 30 fps; LeRobot's loop keeps the episode time, so a loaded machine records fewer frames (97 read
+    # with the hardware tests on two workers beside three busy loops).
+    assert sorted(set(frames["episode_index"])) == [0, 1] and 80 <= len(actions) <= 125
     lower, upper = np.array(SDK_SOFT_LIMITS.joints_rad).T
     for values in (actions, states):
         assert np.all(values[:, :6] >= lower - 1e-4) and np.all(values[:, :6] <= upper + 1e-4)
