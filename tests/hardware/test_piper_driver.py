@@ -468,7 +468,10 @@ def test_a_reset_counts_once_the_feedback_shows_its_effect(rig):
     receive, advance = rig.emulator._receive, rig.emulator._advance
 
     def receive_late(msg: can.Message) -> None:
-        held.append(msg) if msg.arbitration_id == 0x150 else receive(msg)
+        if msg.arbitration_id == 0x150:
+            held.append(msg)
+        else:
+            receive(msg)
 
     def advance_then_release(dt: float) -> None:
         advance(dt)
