@@ -467,11 +467,7 @@ class PiperDriver:
         sent_at = self.clock.time()
         self.link.send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code))
 
-        def cleared(s: ArmState) -> bool:
-            fresh = s.status is not None and s.status.timestamp > sent_at
-            return fresh and all(i is not None and i.timestamp > sent_at for i in s.low_speed) and not _blocking(s)
-
-        self.link.wait_for(cleared, self.config.enable_timeout_s)
+        self.link.wait_for(lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s)
         left = _blocking(self.link.state())
         if left:
             log.error("PiPER on %s still reports %s after clearing errors", self.link.where, "; ".join(map(str, left)))
@@ -494,13 +490,8 @@ class PiperDriver:
         self._may_be_high_follow = False
 
         # Frames sent after ours but before the firmware acted on it are fresh too and still show the old
-        # state: the reset counts once fresh feedback shows its effect (no e-stop, no blocking fault).
-        def reset_seen(s: ArmState) -> bool:
-            if s.status is None or any(f is None or f.timestamp <= sent_at for f in (s.status, *s.low_speed)):
-                return False
-            return s.status.value.arm_status != ArmStatusCode.EMERGENCY_STOP and not _blocking(s)
-
-        if not self.link.wait_for(reset_seen, self.config.enable_timeout_s):
+        # state: the reset counts once fresh feedback shows its effect (no blocking fault, the e-stop included).
+        if not self.link.wait_for(lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s):
             state = self.link.state()
             if state.status is not None and state.status.value.arm_status == ArmStatusCode.EMERGENCY_STOP:
                 raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
@@ -656,6 +647,12 @@ def _name(kind: type[CtrlMode] | type[MoveMode], value: int) -> str:
         return kind(value).name
     except ValueError:
         return f"0x{value:02X}"
+
+
+def _fault_free_since(state: ArmState, since: float) -> bool:
+    """Status and driver-info frames all received after ``since``, and no blocking fault (the e-stop is one)."""
+    fresh = (state.status, *state.low_speed)
+    return all(f is not None and f.timestamp > since for f in fresh) and not _blocking(state)
 
 
 def _joints_disabled_since(state: ArmState, since: float) -> bool:
