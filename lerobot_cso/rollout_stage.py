@@ -25,7 +25,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
 from lerobot_cso.checkpoints import PolicyPathConfig
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.rollout.engine import Sampling
 from lerobot_cso.rollout.operator import OperatorConfig
 from lerobot_cso.rollout.pool import VECTORIZATIONS
@@ -102,9 +102,8 @@ class RolloutStageConfig(PolicyPathConfig):
             raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:
             raise UsageError(f"max_steps must be in [1, {world.horizon}], got {self.max_steps}")
-        s = self.sampling
-        if s.temperature <= 0 or (s.top_k is not None and s.top_k < 1):
-            raise UsageError("sampling.temperature must be > 0 and sampling.top_k >= 1 (or null)")
+        check_number("sampling.temperature", self.sampling.temperature, gt=0)
+        check_number("sampling.top_k", self.sampling.top_k, ge=1, optional=True)
         known = getattr(self.policy, "tasks", None)  # the task strings a language/one-hot policy was trained on
         unknown = [t for t in tasks if known and world.task_description(t) not in known]
         if unknown:

@@ -44,7 +44,7 @@ from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import group_advantages
 from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
@@ -112,10 +112,9 @@ class RSFTConfig(TrainingStageConfig):
             raise UsageError("--stop_state_at_cap=true needs --max_successes_per_state=<a cap>")
         if self.epochs < 0:
             raise UsageError(f"epochs must be >= 0, got {self.epochs}")
-        if not 0 < self.min_lr <= self.lr:
-            raise UsageError(f"learning rates must satisfy 0 < min_lr <= lr, got min_lr={self.min_lr}, lr={self.lr}")
-        if not 0 <= self.demo_fraction < 1:
-            raise UsageError(f"demo_fraction must be in [0, 1), got {self.demo_fraction}")
+        check_number("lr", self.lr, gt=0)
+        check_number("min_lr", self.min_lr, gt=0, le=self.lr)
+        check_number("demo_fraction", self.demo_fraction, ge=0, lt=1)
         if self.demo_fraction and self.demos_root is None:
             raise UsageError("--demo_fraction needs --demos_root=<the IL demonstrations' LeRobotDataset folder>")
         if self.push_to_hub and self.repo_id.startswith("local/"):

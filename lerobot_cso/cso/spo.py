@@ -48,7 +48,7 @@ from lerobot_cso.cso.objectives import (
 )
 from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
 from lerobot_cso.envs import seeds
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
@@ -131,11 +131,14 @@ class SPOConfig(TrainingStageConfig):
             raise UsageError(f"state_pool must be >= 1 or null, got {self.state_pool}")
         if self.skip_uniform_for < 0:
             raise UsageError(f"skip_uniform_for must be >= 0, got {self.skip_uniform_for}")
-        if self.target_kl is not None and self.target_kl <= 0:
-            raise UsageError(f"target_kl must be > 0 or null, got {self.target_kl}")
+        check_number("lr", self.lr, gt=0)
+        check_number("weight_decay", self.weight_decay, ge=0)
+        check_number("grad_clip_norm", self.grad_clip_norm, gt=0)
+        check_number("target_kl", self.target_kl, gt=0, optional=True)
+        check_number("ratio_top_k", self.ratio_top_k, ge=1, optional=True)
         low, high = self.clip()
-        if not 0 < low <= 1 <= high:
-            raise UsageError(f"the clip range must satisfy 0 < clip_low <= 1 <= clip_high, got [{low}, {high}]")
+        check_number("clip_low", low, gt=0, le=1)
+        check_number("clip_high", high, ge=1)
         return tasks
 
     def clip(self) -> tuple[float, float]:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_number
 
 Verdict = Literal["success", "failure", "discard"]
 VERDICTS: tuple[str, ...] = ("success", "failure", "discard")
@@ -64,8 +64,8 @@ class OperatorConfig:
             raise UsageError(f"operator.type must be one of {', '.join(OPERATORS)}, got '{self.type}'")
         if self.type == "scripted" and (self.script is None or not Path(self.script).is_file()):
             raise UsageError(f"--operator.type=scripted needs --operator.script=<a JSON file>, got {self.script}")
-        if self.episode_time_s <= 0 or self.rest_time_s < 0:
-            raise UsageError("operator.episode_time_s must be > 0 and operator.rest_time_s >= 0")
+        check_number("operator.episode_time_s", self.episode_time_s, gt=0)
+        check_number("operator.rest_time_s", self.rest_time_s, ge=0)
         if self.fps is not None and self.fps < 1:
             raise UsageError(f"operator.fps must be >= 1, got {self.fps}")
         if self.on_fault not in ON_FAULT:
