@@ -9,17 +9,19 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
 
 from .clock import SYSTEM_CLOCK, Clock
 from .codec import (
     ID_ARM_STATUS,
+    ID_EMERGENCY_STOP,
     ID_GRIPPER_FEEDBACK,
     ID_HIGH_SPEED,
     ID_JOINT_FEEDBACK,
     ID_LOW_SPEED,
+    ID_MODE_CONTROL,
     LIMIT_QUERY_ANGLE_SPEED,
     MIT_MODE_HIGH_FOLLOW,
     MIT_MODE_POSITION_VELOCITY,
@@ -38,6 +40,7 @@ from .codec import (
     ModeControl,
     MotorEnable,
     MoveMode,
+    decode_command,
     encode,
     encode_joint_targets,
     firmware_release,
@@ -53,6 +56,7 @@ from .errors import (
     PiperConnectionError,
     PiperError,
 )
+from .interlock import NOT_ENABLED, Interlock
 from .link import PiperLink
 from .safety import SDK_SOFT_LIMITS, JointLimits, check_finite, clamp, safe_target
 from .state import ArmState
@@ -67,6 +71,13 @@ REST_PERIOD_S = 0.02
 MODE_RESEND_S = 0.05
 REST_TOLERANCE_RAD = 0.01
 REST_TOLERANCE_M = 0.002
+# The firmware switches the motors off this long after a reset (measured on a real arm).
+RESET_MOTOR_OFF_S = 0.73
+# An e-stop frame the bus refuses (a full TX queue) is retried every period until this much time passed.
+ESTOP_RETRY_S = 0.1
+ESTOP_RETRY_PERIOD_S = 0.001
+# The firmware refuses to enable a joint at (within this) or past its limit.
+LIMIT_MARGIN_RAD = math.radians(0.5)
 # Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
 LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
 # A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
@@ -214,10 +225,15 @@ class PiperDriver:
         watch |= dict.fromkeys(ID_LOW_SPEED, cfg.feedback_timeout_s + 2 * LOW_SPEED_PERIOD_S)
         self.link = PiperLink(cfg.interface, cfg.channel, cfg.bitrate, cfg.bus_options, watch, "feedback frame", clock)
         self.limits: JointLimits = cfg.limits  # the soft limits, narrowed to the firmware's on connect
-        self._estopped = threading.Event()
+        self._interlock = Interlock()
+        # One lifecycle operation (enable, reset, recover, disable, disconnect) at a time; e-stops never wait.
+        self._operation = threading.RLock()
+        self._disconnecting = False  # only the disconnect policy's own rest walk may command meanwhile
         self._reset_sent_at: float | None = None
         self._enabled_before_reset = False
         self._may_be_high_follow = False
+        # Foreign resets and high-follow requests newer than this latch motion (set when an enable begins).
+        self._session_start = 0.0
         self._reported_faults: tuple[Fault, ...] = ()
 
     # ------------------------------------------------------------------------------ lifecycle
@@ -227,7 +243,7 @@ class PiperDriver:
 
     @property
     def estopped(self) -> bool:
-        return self._estopped.is_set()
+        return self._interlock.estopped
 
     def connect(self, listen_only: bool = False) -> None:
         """Open the bus and wait for the arm's feedback (joints, gripper, status, driver info). Unless
@@ -238,6 +254,8 @@ class PiperDriver:
             first += ID_HIGH_SPEED
         self.link.open(first, self.config.connect_timeout_s)
         self.limits = self.config.limits
+        self._interlock.close(NOT_ENABLED)
+        self._session_start = self.clock.time()
         if listen_only:
             return
         try:
@@ -291,23 +309,28 @@ class PiperDriver:
 
     def close(self) -> None:
         """Release the bus without touching the arm (no disconnect policy)."""
+        self._interlock.close("the driver is disconnected")
         self.link.close()
 
     def disconnect(self) -> None:
-        """Apply the disconnect policy (best effort), then release the bus."""
+        """Apply the disconnect policy (best effort), then release the bus. From the call on, other
+        threads' commands are refused (only the rest walk moves the arm)."""
         if not self.link.is_open:
             return
-        try:
-            if self.config.disconnect_policy == DisconnectPolicy.REST:
-                if self.move_to_rest():
-                    if not self.disable():
-                        log.warning("PiPER did not confirm it disabled its motors")
-                else:
-                    log.warning("PiPER did not reach the rest pose; left enabled and holding (not dropped)")
-        except Exception as exc:  # never let cleanup hide the original error or skip closing the bus
-            log.warning("PiPER disconnect policy not applied (%s); arm left as it was", exc)
-        finally:
-            self.link.close()
+        with self._operation:
+            self._disconnecting = True
+            try:
+                if self.config.disconnect_policy == DisconnectPolicy.REST:
+                    if self._walk_to_rest(own=True):
+                        if not self.disable():
+                            log.warning("PiPER did not confirm it disabled its motors")
+                    else:
+                        log.warning("PiPER did not reach the rest pose; left enabled and holding (not dropped)")
+            except Exception as exc:  # never let cleanup hide the original error or skip closing the bus
+                log.warning("PiPER disconnect policy not applied (%s); arm left as it was", exc)
+            finally:
+                self.close()
+                self._disconnecting = False
 
     # ---------------------------------------------------------------------------------- state
     def state(self) -> ArmState:
@@ -334,49 +357,93 @@ class PiperDriver:
         return state
 
     def rearm_watchdog(self) -> None:
-        """Resume after a watchdog trip or bus-off, once fresh feedback arrives again (logged)."""
+        """Resume after a watchdog trip or bus-off, once fresh feedback arrives again (logged).
+
+        Nothing is known of the gap: the arm may have been power-cycled and put in high-follow (by a
+        linked leader). In position mode on firmware that needs a reset to leave it, motion stays
+        latched until ``enable()`` has run the exit."""
         self.link.rearm()
+        if not self.config.high_follow:
+            self._may_be_high_follow = True
+            if self._high_follow_exit_needs_reset():
+                self._interlock.close(
+                    "feedback stopped for a while and the arm may have been put in high-follow meanwhile, which "
+                    "this firmware leaves only after a reset; call enable()"
+                )
 
     # -------------------------------------------------------------------------------- enable
     def enable(self) -> None:
         """Recover faults per ``recovery``, leave high-follow if needed, enable every joint and the
-        gripper, then select and confirm the motion mode.
+        gripper, then select and confirm the motion mode; motion is allowed again only once it has.
 
-        After a reset the firmware switches the motors off ~0.73 s late: that is waited out first.
-        There is no acknowledgement: the handshake resends 0x471 with capped exponential back-off
-        (at least twice) until driver-info frames received *after* the first request show every
-        enable bit, then sends 0x151 and waits for the status frame to report CAN mode and MOVE J.
+        A reset's delayed motor-off (~0.73 s) is waited out first: after our reset, after another
+        host's reset seen on the bus, and when the arm is in standby with its enable bits still set
+        (a reset we did not see, e.g. just before we connected). There is no acknowledgement: the
+        handshake resends 0x471 with capped exponential back-off (at least twice) until driver-info
+        frames received *after* the first request show every enable bit, then sends 0x151 and waits
+        for the status frame to report CAN mode and MOVE J. Refused while the e-stop is engaged
+        (``resume`` leaves it); an e-stop requested meanwhile aborts it before its next frame.
         """
-        self._recover_faults()
-        self._leave_high_follow()
-        self._wait_out_reset()
+        token = self._interlock.estops
+        with self._operation:
+            self._refuse_if_estopped()
+            self._enable(token, resuming=False)
+
+    def _enable(self, token: int, resuming: bool) -> None:
+        self._interlock.close("enable() is in progress")
+        if self._foreign_high_follow_since(self._session_start):
+            self._may_be_high_follow = True
+        self._recover_faults(token)
+        self._leave_high_follow(token)
+        self._wait_out_reset(token)
+        self._session_start = self.clock.time()
         timeout = self.config.enable_timeout_s
         started = self.clock.time()  # frames are stamped on this clock: only later ones count
         deadline = self.clock.monotonic() + timeout
         backoff = ENABLE_BACKOFF_START_S
         requests = 0
         request = encode(MotorEnable(MOTOR_ALL_JOINTS, True))
+        guard = self._abort_on_estop(token, "enable")
         while True:
             try:
-                self.link.send(request, self._gripper_hold(GripperStatusCode.ENABLE))
+                self._send(request, self._gripper_hold(GripperStatusCode.ENABLE), guard=guard)
                 requests += 1
             except PiperConnectionError as exc:  # e.g. ENOBUFS: a full TX queue; back off and retry
                 log.debug("enable request not sent: %s", exc)
             remaining = deadline - self.clock.monotonic()
-            enabled = self.link.wait_for(lambda s: not _disabled_parts(s, started), max(min(backoff, remaining), 0))
+            enabled = self._wait(guard, lambda s: not _disabled_parts(s, started), max(min(backoff, remaining), 0))
             if enabled and requests >= 2:
                 break
             if self.clock.monotonic() >= deadline:
-                missing = _disabled_parts(self.link.state(), started)
-                raise EnableTimeoutError(
-                    f"PiPER on {self.link.where} did not report enabled within {timeout:.1f} s after "
-                    f"{requests} enable requests (still disabled: {', '.join(missing)}); "
-                    "check the e-stop button and the arm's power"
-                )
+                raise EnableTimeoutError(self._enable_failure(started, requests))
             backoff = min(backoff * 2, ENABLE_BACKOFF_CAP_S)
-        self._select_mode(deadline)
+        self._select_mode(deadline, guard)
+        if not self._interlock.open(token, clear_estop=resuming):
+            guard()  # raises: an e-stop was requested after the last frame
 
-    def _recover_faults(self) -> None:
+    def _enable_failure(self, started: float, requests: int) -> str:
+        """Why the enable handshake timed out, with the remedy."""
+        state = self.link.state()
+        missing = _disabled_parts(state, started)
+        message = (
+            f"PiPER on {self.link.where} did not report enabled within {self.config.enable_timeout_s:.1f} s after "
+            f"{requests} enable requests (still disabled: {', '.join(missing)}); "
+        )
+        outside = [
+            f"joint_{j} at {angle:.4f} rad, limits [{lower:.4f}, {upper:.4f}]"
+            for j, (angle, (lower, upper)) in enumerate(
+                zip(state.joint_positions_rad or (), self.limits.joints_rad, strict=False), start=1
+            )
+            if not lower - LIMIT_MARGIN_RAD <= angle <= upper + LIMIT_MARGIN_RAD
+        ]
+        if outside:
+            return message + (
+                f"the firmware refuses to enable a joint at or past its limit ({'; '.join(outside)}): support the "
+                "arm, move that joint back inside by hand (motors off), then enable again"
+            )
+        return message + "check the e-stop button and the arm's power"
+
+    def _recover_faults(self, token: int) -> None:
         self.link.raise_if_unhealthy()
         faults = tuple(f for f in self.link.state().faults() if not is_motion_recoverable(f))
         if not faults:
@@ -386,17 +453,35 @@ class PiperDriver:
             raise FirmwareFaultError(faults)
         log.warning("PiPER on %s reports %s; recovering (%s)", self.link.where, "; ".join(map(str, faults)), how)
         if how == Recovery.CLEAR_ERRORS:
-            left = self.clear_errors()
+            left = self._clear_errors(token)
             if left:
                 raise FirmwareFaultError(left)
         else:
-            self.reset()
+            self._reset(token)
 
-    def _leave_high_follow(self) -> None:
-        if self.config.high_follow or not self._may_be_high_follow:
-            return
+    def _high_follow_exit_needs_reset(self) -> bool:
+        """Whether this firmware (older than S-V1.8-5, or of unknown version) leaves high-follow only by a reset."""
         release = firmware_release(self.link.state().firmware_version)
-        if release is not None and release >= LEAVES_HIGH_FOLLOW_WITHOUT_RESET:
+        return release is None or release < LEAVES_HIGH_FOLLOW_WITHOUT_RESET
+
+    def _foreign_high_follow_since(self, since: float) -> bool:
+        """Whether another host (a plugged-in leader) asked for high-follow (0x151 … AD) after ``since``."""
+        kept = self.link.cache.latest(ID_MODE_CONTROL)
+        if kept is None or kept[1] <= since:
+            return False
+        mode = decode_command(ID_MODE_CONTROL, kept[0])
+        return isinstance(mode, ModeControl) and mode.mit_mode == MIT_MODE_HIGH_FOLLOW
+
+    def _foreign_reset_since(self, since: float) -> float | None:
+        """When another host last reset the arm (0x150 02), if after ``since``."""
+        kept = self.link.cache.latest(ID_EMERGENCY_STOP)
+        if kept is None or kept[1] <= since:
+            return None
+        stop = decode_command(ID_EMERGENCY_STOP, kept[0])
+        return kept[1] if isinstance(stop, EmergencyStop) and stop.action == EStopAction.RESUME else None
+
+    def _leave_high_follow(self, token: int) -> None:
+        if self.config.high_follow or not self._may_be_high_follow or not self._high_follow_exit_needs_reset():
             return
         version = self.link.state().firmware_version or "of unknown version"
         if self.config.high_follow_exit == HighFollowExit.REFUSE:
@@ -411,23 +496,44 @@ class PiperDriver:
             self.link.where,
             version,
         )
-        self.reset()
+        self._reset(token)
 
-    def _wait_out_reset(self) -> None:
-        """After our reset: wait until the firmware has switched the motors off (bounded)."""
-        if self._reset_sent_at is None:
-            return
-        sent_at = self._reset_sent_at
-        remaining = sent_at + self.config.reset_settle_s - self.clock.time()
-        if self._enabled_before_reset:  # the motor-off shows as enable bits going clear after the reset
-            seen = self.link.wait_for(lambda s: _joints_disabled_since(s, sent_at), max(remaining, 0.0))
-            if not seen:
-                log.info("PiPER on %s: motors still on %.1f s after the reset", self.link.where, remaining)
-        elif remaining > 0:  # already off: nothing to observe, wait the delay itself
-            self.link.sleep(remaining)
+    def _wait_out_reset(self, token: int) -> None:
+        """Wait (bounded by ``reset_settle_s``) until the firmware has switched the motors off after a
+        reset: ours, another host's seen on the bus, or one inferred from standby with enable bits set."""
+        now = self.clock.time()
+        settle = self.config.reset_settle_s
+        state = self.link.state()
+        sent_at, enabled_before = self._reset_sent_at, self._enabled_before_reset
         self._reset_sent_at = None
+        foreign = self._foreign_reset_since(now - settle)
+        if foreign is not None and (sent_at is None or foreign > sent_at):
+            log.warning(
+                "PiPER on %s: another host reset the arm %.3f s ago; waiting out its delayed motor-off",
+                self.link.where,
+                now - foreign,
+            )
+            sent_at, enabled_before = foreign, any(state.joints_enabled)
+        if sent_at is None:
+            if not _may_be_counting_down(state):
+                return
+            log.warning(
+                "PiPER on %s is in standby with motors enabled, as in the %.2f s after a reset: waiting up to "
+                "%.1f s for the motor-off before enabling",
+                self.link.where,
+                RESET_MOTOR_OFF_S,
+                settle,
+            )
+            sent_at, enabled_before = now, True
+        remaining = max(sent_at + settle - now, 0.0)
+        guard = self._abort_on_estop(token, "the wait for a reset's motor-off")
+        if enabled_before:  # the motor-off shows as enable bits going clear after the reset
+            if not self._wait(guard, lambda s: _joints_disabled_since(s, sent_at), remaining):
+                log.info("PiPER on %s: motors still on %.1f s after the reset", self.link.where, remaining)
+        else:  # already off: nothing to observe, wait the delay itself
+            self._wait(guard, lambda s: False, remaining)
 
-    def _select_mode(self, deadline: float) -> None:
+    def _select_mode(self, deadline: float, guard: Callable[[], None]) -> None:
         """Send 0x151 until the status confirms it (resent every ``MODE_RESEND_S``: a frame can be lost)."""
         sent_at = self.clock.time()
         end = max(deadline, self.clock.monotonic() + FEEDBACK_PERIOD_S * 4)
@@ -436,8 +542,8 @@ class PiperDriver:
             return s.status is not None and s.status.timestamp > sent_at and _mode_problem(s) is None
 
         while True:
-            self.link.send(self._mode_frame())
-            if self.link.wait_for(confirmed, max(min(MODE_RESEND_S, end - self.clock.monotonic()), 0.0)):
+            self._send(self._mode_frame(), guard=guard)
+            if self._wait(guard, confirmed, max(min(MODE_RESEND_S, end - self.clock.monotonic()), 0.0)):
                 break
             if self.clock.monotonic() >= end:
                 problem = _mode_problem(self.link.state()) or "no status frame"
@@ -445,29 +551,38 @@ class PiperDriver:
         self._may_be_high_follow = self.config.high_follow
 
     def disable(self) -> bool:
-        """Disable all motors and the gripper; True once the arm reports every enable bit clear.
+        """Disable all motors and the gripper; True once the arm reports every enable bit clear. Motion
+        is latched off from the call on (until ``enable``).
 
         Warning: a raised arm falls when its motors lose power.
         """
-        sent_at = self.clock.time()
-        frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
-        self.link.send(*frames)
-        self.link.send(*frames)
-        return self.link.wait_for(lambda s: _all_disabled_since(s, sent_at), self.config.enable_timeout_s)
+        with self._operation:
+            self._interlock.close("the motors were disabled; call enable()")
+            sent_at = self.clock.time()
+            frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
+            self.link.send(*frames)
+            self.link.send(*frames)
+            return self.link.wait_for(lambda s: _all_disabled_since(s, sent_at), self.config.enable_timeout_s)
 
     # ----------------------------------------------------------------------------- recovery
     def clear_errors(self) -> tuple[Fault, ...]:
         """Clear the joints' (0x475) and the gripper's (0x159) error codes, without touching the motors'
         power; returns the faults still reported afterwards (logged)."""
+        token = self._interlock.estops
+        with self._operation:
+            return self._clear_errors(token)
+
+    def _clear_errors(self, token: int) -> tuple[Fault, ...]:
         log.warning("PiPER on %s: clearing error codes (0x475, 0x159)", self.link.where)
         gripper = self.link.state().gripper
         code = GripperStatusCode.ENABLE_CLEAR_ERROR
         if gripper is None or not gripper.value.enabled:
             code = GripperStatusCode.DISABLE_CLEAR_ERROR
         sent_at = self.clock.time()
-        self.link.send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code))
+        guard = self._abort_on_estop(token, "clear_errors")
+        self._send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code), guard=guard)
 
-        self.link.wait_for(lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s)
+        self._wait(guard, lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s)
         left = _blocking(self.link.state())
         if left:
             log.error("PiPER on %s still reports %s after clearing errors", self.link.where, "; ".join(map(str, left)))
@@ -477,21 +592,32 @@ class PiperDriver:
 
     def reset(self) -> None:
         """Reset the firmware (0x150 02): clears errors and the e-stop, drops to standby, and ~0.73 s
-        later switches the motors off. Call ``enable`` next (it waits the motor-off out).
+        later switches the motors off. Motion is latched off from the call on; call ``enable`` next (it
+        waits the motor-off out). The driver's own e-stop stays engaged (``resume`` leaves it).
 
         Warning: a raised arm drops a little between the motor-off and the re-enable.
         """
+        token = self._interlock.estops
+        with self._operation:
+            self._reset(token)
+
+    def _reset(self, token: int) -> None:
         log.warning("PiPER on %s: reset (0x150 02)", self.link.where)
+        # Latched before the reset frame takes the send lock: no command frame can follow it.
+        self._interlock.close(
+            f"the arm was reset: its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later and stay off; call enable()"
+        )
         state = self.link.state()
         self._enabled_before_reset = all(state.joints_enabled)
         sent_at = self.clock.time()
-        self.link.send(encode(EmergencyStop(EStopAction.RESUME)))
+        guard = self._abort_on_estop(token, "the reset")
+        self._send(encode(EmergencyStop(EStopAction.RESUME)), guard=guard)
         self._reset_sent_at = sent_at
         self._may_be_high_follow = False
 
         # Frames sent after ours but before the firmware acted on it are fresh too and still show the old
         # state: the reset counts once fresh feedback shows its effect (no blocking fault, the e-stop included).
-        if not self.link.wait_for(lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s):
+        if not self._wait(guard, lambda s: _fault_free_since(s, sent_at), self.config.enable_timeout_s):
             state = self.link.state()
             if state.status is not None and state.status.value.arm_status == ArmStatusCode.EMERGENCY_STOP:
                 raise EnableTimeoutError(f"PiPER on {self.link.where} still reports the e-stop after a reset")
@@ -504,24 +630,28 @@ class PiperDriver:
             raise FirmwareFaultError(left)
 
     def recover(self, how: str = Recovery.RESET) -> None:
-        """Bring a faulted or e-stopped arm back: ``clear_errors`` or ``reset``, then re-enable."""
+        """Bring a faulted or e-stopped arm back: ``clear_errors`` or ``reset``, then re-enable, then leave
+        the driver's e-stop. An e-stop requested at any moment of it wins: the recovery stops before its
+        next frame and raises ``EmergencyStopError``, and the e-stop stays engaged."""
+        token = self._interlock.estops
         how = Recovery(how)
-        if how == Recovery.CLEAR_ERRORS:
-            left = self.clear_errors()
-            if left:
-                raise FirmwareFaultError(left)
-        elif how == Recovery.RESET:
-            self.reset()
-        self.enable()
-        self._estopped.clear()
+        with self._operation:
+            if how == Recovery.CLEAR_ERRORS:
+                left = self._clear_errors(token)
+                if left:
+                    raise FirmwareFaultError(left)
+            elif how == Recovery.RESET:
+                self._reset(token)
+            self._enable(token, resuming=True)
 
     # ------------------------------------------------------------------------------- motion
     def command(self, joints_rad: Sequence[float], gripper_m: float | None = None) -> SentCommand:
         """Clamp to the limits and the step limit, then send 0x151 + 0x155..0x157 (+ 0x159).
 
         Refused (nothing sent) unless the latest feedback shows every joint (and the gripper, if it
-        gets a target) enabled, CAN command mode and MOVE J, no blocking fault, and no e-stop request;
-        the e-stop is checked again under the send lock before every frame.
+        gets a target) enabled, CAN command mode and MOVE J, no blocking fault, no e-stop request and
+        no motion latch (a reset, disable, disconnect or foreign reset since the last confirmed
+        enable); the e-stop and the latch are checked again under the send lock before every frame.
         """
         steps = self.config.joint_steps()
         return self._command(joints_rad, gripper_m, steps, self.config.max_gripper_step_m)
@@ -532,6 +662,7 @@ class PiperDriver:
         gripper_m: float | None,
         steps: Sequence[float] | None,
         gripper_step: float | None,
+        own: bool = False,
     ) -> SentCommand:
         if len(joints_rad) != NUM_JOINTS:
             raise ValueError(f"expected {NUM_JOINTS} joint targets, got {len(joints_rad)}")
@@ -540,7 +671,7 @@ class PiperDriver:
         if gripper_m is not None:
             gripper_m = float(gripper_m)
             check_finite([gripper_m], "gripper target")
-        self._refuse_if_estopped()
+        self._refuse_motion(own)
         state = self.checked_state()
         self._refuse_if_not_ready(state, gripper_m is not None)
         present = state.joint_positions_rad
@@ -555,17 +686,76 @@ class PiperDriver:
         if gripper_m is not None:
             safe_gripper = safe_target(gripper_m, state.gripper.value.opening_m, self.limits.gripper_m, gripper_step)
             frames.append(self._gripper_frame(safe_gripper, GripperStatusCode.ENABLE))
-        try:
-            self.link.send(*frames, guard=self._refuse_if_estopped)
-        except PartialCommandError as exc:
-            if isinstance(exc.cause, EmergencyStopError):  # the e-stop cut in between two frames
-                raise EmergencyStopError(str(exc)) from exc
-            raise
+        self._send(*frames, guard=lambda: self._refuse_motion(own))
         return SentCommand(safe, safe_gripper)
 
+    def _send(self, *frames: Frame, guard: Callable[[], None]) -> None:
+        """Send back to back, ``guard`` checked under the send lock before each frame; a guard that stops
+        the frames half-way raises its own error, naming what was sent."""
+        try:
+            self.link.send(*frames, guard=guard)
+        except PartialCommandError as exc:
+            if isinstance(exc.cause, EmergencyStopError | ArmNotReadyError):
+                raise type(exc.cause)(str(exc)) from exc
+            raise
+
+    def _wait(self, guard: Callable[[], None], predicate: Callable[[ArmState], bool], timeout_s: float) -> bool:
+        """``link.wait_for``, checking ``guard`` at every look (it raises to abort the wait)."""
+
+        def checked(state: ArmState) -> bool:
+            guard()
+            return predicate(state)
+
+        return self.link.wait_for(checked, timeout_s)
+
+    def _abort_on_estop(self, token: int, what: str) -> Callable[[], None]:
+        """A guard that raises ``EmergencyStopError`` once an e-stop was requested after ``token``."""
+
+        def guard() -> None:
+            if self._interlock.stopped_since(token):
+                raise EmergencyStopError(
+                    f"PiPER on {self.link.where}: emergency stop requested during {what}; aborted, the e-stop "
+                    "stays engaged; call resume()"
+                )
+
+        return guard
+
     def _refuse_if_estopped(self) -> None:
-        if self._estopped.is_set():
+        if self._interlock.estopped:
             raise EmergencyStopError(f"PiPER on {self.link.where}: emergency stop engaged; call resume() first")
+
+    def _refuse_motion(self, own: bool = False) -> None:
+        """Raise unless motion may reach the bus now: no e-stop, no latch, no disconnect under way (but for
+        its ``own`` rest walk), and no reset or high-follow request from another host since the enable."""
+        self._refuse_if_estopped()
+        problem = self._interlock.latch
+        if problem is None and self._disconnecting and not own:
+            problem = "the driver is disconnecting"
+        if problem is None:
+            problem = self._foreign_problem()
+            if problem is not None:
+                self._interlock.close(problem)
+        if problem is not None:
+            raise ArmNotReadyError(f"PiPER on {self.link.where}: {problem}; command refused")
+
+    def _foreign_problem(self) -> str | None:
+        """A reset, or a high-follow request this firmware keeps, from another host since the enable."""
+        if self._foreign_reset_since(self._session_start) is not None:
+            return (
+                f"another host reset the arm (0x150 02): its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later; "
+                "call enable()"
+            )
+        if (
+            not self.config.high_follow
+            and self._foreign_high_follow_since(self._session_start)
+            and self._high_follow_exit_needs_reset()
+        ):
+            self._may_be_high_follow = True
+            return (
+                "another host (a plugged-in leader?) put the arm in high-follow (0x151 … AD), which this firmware "
+                "leaves only after a reset; call enable()"
+            )
+        return None
 
     def _refuse_if_not_ready(self, state: ArmState, with_gripper: bool) -> None:
         problem = _mode_problem(state)
@@ -582,6 +772,9 @@ class PiperDriver:
 
     def move_to_rest(self) -> bool:
         """Walk to the rest pose at ``rest_speed_rad_s``; True once there (within 0.01 rad, 2 mm)."""
+        return self._walk_to_rest(own=False)
+
+    def _walk_to_rest(self, own: bool) -> bool:
         cfg = self.config
         step = cfg.rest_speed_rad_s * REST_PERIOD_S
         steps = tuple(min(step, s) for s in (cfg.joint_steps() or (step,) * NUM_JOINTS))
@@ -591,20 +784,32 @@ class PiperDriver:
             joints, gripper = state.joint_positions_rad, state.gripper
             if joints is not None and gripper is not None and _at(joints, gripper.value.opening_m, cfg):
                 return True
-            self._command(cfg.rest_pose_rad, cfg.rest_gripper_m, steps, cfg.max_gripper_step_m)
+            self._command(cfg.rest_pose_rad, cfg.rest_gripper_m, steps, cfg.max_gripper_step_m, own)
             self.link.sleep(REST_PERIOD_S)
         return False
 
     # ------------------------------------------------------------------------------- e-stop
     def emergency_stop(self) -> None:
         """Quick stop (0x150 01): the firmware damps the arm, which sinks slowly. From this call on no
-        motion frame leaves the driver (checked under the send lock) until ``resume``."""
-        self._estopped.set()
-        self.link.send(encode(EmergencyStop(EStopAction.STOP)))
+        motion frame leaves the driver (checked under the send lock) until ``resume``, and an enable or
+        recovery in flight stops before its next frame. A frame the bus refuses (a full transmit queue)
+        is retried for up to ``ESTOP_RETRY_S``."""
+        self._interlock.stop()
+        frame = encode(EmergencyStop(EStopAction.STOP))
+        deadline = self.clock.monotonic() + ESTOP_RETRY_S
+        while True:
+            try:
+                self.link.send(frame)
+                return
+            except PiperConnectionError as exc:
+                if not self.link.is_open or self.clock.monotonic() >= deadline:
+                    raise
+                log.warning("PiPER on %s: e-stop frame not sent (%s); retrying", self.link.where, exc)
+                self.clock.sleep(ESTOP_RETRY_PERIOD_S)
 
     def resume(self) -> None:
         """Leave the e-stop: reset (0x150 02), wait out the firmware's delayed motor-off, re-enable and
-        reselect the motion mode.
+        reselect the motion mode. An e-stop requested while it runs aborts it (``EmergencyStopError``).
 
         Warning: the reset switches the motors off for a moment, so a raised arm drops a little before
         the re-enable catches it.
@@ -653,6 +858,12 @@ def _fault_free_since(state: ArmState, since: float) -> bool:
     """Status and driver-info frames all received after ``since``, and no blocking fault (the e-stop is one)."""
     fresh = (state.status, *state.low_speed)
     return all(f is not None and f.timestamp > since for f in fresh) and not _blocking(state)
+
+
+def _may_be_counting_down(state: ArmState) -> bool:
+    """Standby with enable bits set: how the arm looks between a reset and its delayed motor-off."""
+    standby = state.status is not None and state.status.value.ctrl_mode == CtrlMode.STANDBY
+    return standby and any(state.joints_enabled)
 
 
 def _joints_disabled_since(state: ArmState, since: float) -> bool:

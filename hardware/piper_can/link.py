@@ -29,7 +29,6 @@ from .codec import (
     COMMAND_IDS,
     DLC,
     FEEDBACK_IDS,
-    ID_EMERGENCY_STOP,
     ID_FIRMWARE,
     ID_JOINT_CONFIG,
     ID_LIMIT_QUERY,
@@ -42,9 +41,10 @@ from .state import ArmState, FeedbackCache
 
 log = logging.getLogger(__name__)
 
-# Host -> arm frames worth caching when another host or a linked leader sends them.
+# Host -> arm frames worth caching when another host or a linked leader sends them (our own frames
+# are not received back: python-can's receive_own_messages is off): its targets, its mode changes,
+# and its e-stops and resets.
 OBSERVED_CONTROL_IDS = COMMAND_IDS - {
-    ID_EMERGENCY_STOP,
     ID_FIRMWARE,
     ID_JOINT_CONFIG,
     ID_LIMIT_QUERY,

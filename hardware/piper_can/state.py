@@ -11,6 +11,7 @@ from .codec import (
     NUM_JOINTS,
     ArmStatus,
     ArmStatusCode,
+    EmergencyStop,
     GripperCommand,
     GripperFeedback,
     HighSpeedInfo,
@@ -58,6 +59,7 @@ class ArmState:
     leader_joints: tuple[Stamped[float] | None, ...]
     leader_gripper: Stamped[GripperCommand] | None
     leader_mode: Stamped[ModeControl] | None
+    foreign_estop: Stamped[EmergencyStop] | None = None  # another host's last 0x150 (stop or reset)
     motor_limits: dict[int, MotorLimits] = field(default_factory=dict)
     firmware_version: str | None = None
     rates_hz: dict[int, float] = field(default_factory=dict)
@@ -140,7 +142,8 @@ class FeedbackCache:
         self._window_start: float | None = None
 
     def update(self, frame_id: int, data: bytes, timestamp: float) -> None:
-        """Store one 8-byte frame (feedback, or control frames of another host / linked leader)."""
+        """Store one 8-byte frame (feedback, or control frames of another host / linked leader). A frame
+        stamped before the one kept for its ID (delivered late) is counted, not kept: the newest wins."""
         if frame_id == ID_MOTOR_LIMITS:  # one reply per motor: keep all of them
             limits = decode_feedback(frame_id, data)
             with self._lock:
@@ -149,8 +152,15 @@ class FeedbackCache:
             with self._lock:
                 self._firmware_text = (self._firmware_text + data)[-_FIRMWARE_TEXT_MAX:]
         with self._lock:
-            self._latest[frame_id] = (data, timestamp)
+            kept = self._latest.get(frame_id)
+            if kept is None or kept[1] <= timestamp:
+                self._latest[frame_id] = (data, timestamp)
             self._counts[frame_id] = self._counts.get(frame_id, 0) + 1
+
+    def latest(self, frame_id: int) -> tuple[bytes, float] | None:
+        """The raw data and stamp kept for ``frame_id`` (cheap: no decoding), or None."""
+        with self._lock:
+            return self._latest.get(frame_id)
 
     def roll_rates(self, now: float) -> None:
         """Close the rate window when it is ``RATE_WINDOW_S`` old: rate = frames / elapsed."""
@@ -190,7 +200,7 @@ class FeedbackCache:
                     high[j - 1] = Stamped(message, timestamp)
                 case LowSpeedInfo(joint=j):
                     low[j - 1] = Stamped(message, timestamp)
-                case GripperFeedback() | ArmStatus() | GripperCommand() | ModeControl():
+                case GripperFeedback() | ArmStatus() | GripperCommand() | ModeControl() | EmergencyStop():
                     found[type(message)] = Stamped(message, timestamp)
         return ArmState(
             joints=tuple(joints),
@@ -201,6 +211,7 @@ class FeedbackCache:
             leader_joints=tuple(leader_joints),
             leader_gripper=found.get(GripperCommand),
             leader_mode=found.get(ModeControl),
+            foreign_estop=found.get(EmergencyStop),
             motor_limits=limits,
             firmware_version=parse_firmware_version(firmware_text),
             rates_hz=rates,

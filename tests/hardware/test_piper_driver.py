@@ -562,6 +562,10 @@ def test_the_watchdog_rearms_only_after_fresh_feedback(rig):
         rig.driver.command(POSE)
     rig.arm.silent = False
     assert rig.until(lambda: _rearmed(rig.driver))
+    # Nothing is known of the gap (a power cycle into high-follow?): this firmware needs enable()'s exit first.
+    with pytest.raises(ArmNotReadyError, match="may have been put in high-follow meanwhile"):
+        rig.driver.command(POSE)
+    rig.driver.enable()
     walk_to(rig.driver, POSE)
 
 
@@ -595,6 +599,7 @@ def test_bus_off_is_an_error_and_other_error_frames_are_counted(rig, caplog):
         rig.driver.command(POSE)
     assert motion_frames(rig.drain()) == []
     rig.driver.rearm_watchdog()  # the controller restarted and feedback flows again
+    rig.driver.enable()  # the gap may hide a power cycle into high-follow (see the watchdog re-arm test)
     rig.driver.command(POSE)
 
 
