@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
-from piper_can.driver import MOTION_MODES, DriverConfig, DriverSettings
+from piper_can.driver import MOTION_MODES, DriverConfig, DriverSettings, check_speed_percent
 from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
 
 from .features import GRIPPER_KEY, JOINT_KEYS, MOTOR_KEYS
@@ -38,9 +38,13 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
     # UDP port for interface=udp_multicast (None: python-can's default 43113).
     port: int | None = None
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
-    # Per-command cap on |target - measured| (rad for joints, m for the gripper); a float applies to
-    # every key, a dict must name every action key; None turns it off.
+    # Per-command cap on |target - measured|: a float applies to the six joints (rad), a dict must name
+    # every action key (rad for joints, m for the gripper) and then also sets the gripper's; None: no
+    # cap on the joints.
     max_relative_target: float | dict[str, float] | None = 0.2
+    # The gripper's cap in metres unless max_relative_target is a dict (its stroke is only 0.07 m, so
+    # the joints' 0.2 would be no cap); None: none.
+    gripper_max_relative_target: float | None = 0.02
     # Soft limits [lower, upper] in rad (joint_1..joint_6) and m (gripper); targets are clamped to them
     # (and to the firmware's own limits, read on connect).
     joint_limits: dict[str, tuple[float, float]] = field(default_factory=_default_limits)
@@ -62,8 +66,8 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
     def _check_motion(self) -> None:
         if self.motion_mode is not None and self.motion_mode not in MOTION_MODES:
             raise ValueError(f"motion_mode must be one of {MOTION_MODES} or null, got {self.motion_mode!r}")
-        if self.speed_percent is not None and not 0 <= self.speed_percent <= 100:
-            raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
+        if self.speed_percent is not None:
+            check_speed_percent(self.speed_percent)
 
     def resolve_motion(self, recorded: MotionMode | None = None) -> MotionMode:
         """The mode to move in: ``motion_mode`` / ``speed_percent`` where given, the ``recorded`` mode
@@ -85,7 +89,8 @@ class PiperFollowerConfig(RobotConfig, DriverSettings):
             joint_steps: float | tuple[float, ...] | None = tuple(float(cap[k]) for k in JOINT_KEYS)
             gripper_step: float | None = float(cap[GRIPPER_KEY])
         else:
-            joint_steps = gripper_step = None if cap is None else float(cap)
+            joint_steps = None if cap is None else float(cap)
+            gripper_step = self.gripper_max_relative_target
         limits = JointLimits(
             joints_rad=tuple(tuple(self.joint_limits[k.removesuffix(".pos")]) for k in JOINT_KEYS),
             gripper_m=tuple(self.joint_limits["gripper"]),

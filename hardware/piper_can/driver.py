@@ -15,6 +15,7 @@ from enum import StrEnum
 
 from .clock import SYSTEM_CLOCK, Clock
 from .codec import (
+    GRIPPER_EFFORT_MAX_NM,
     ID_ARM_STATUS,
     ID_EMERGENCY_STOP,
     ID_GRIPPER_FEEDBACK,
@@ -83,6 +84,9 @@ LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
 # A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
 LIMIT_MISMATCH_RAD = math.radians(0.05)
 MOTION_MODES = ("position", "high_follow")
+# A watchdog looser than this is no watchdog (200 feedback periods; the emulator over UDP needs 0.1-0.3 s).
+MAX_FEEDBACK_TIMEOUT_S = 1.0
+MAX_JOINT_SPEED_RAD_S = 3.0  # the firmware's own cap (0x474 accepts 0-3 rad/s)
 
 
 class DisconnectPolicy(StrEnum):
@@ -139,6 +143,18 @@ class DriverSettings:
         self._check_motion()
         if len(self.rest_pose_rad) != NUM_JOINTS:
             raise ValueError(f"rest_pose_rad needs {NUM_JOINTS} angles, got {len(self.rest_pose_rad)}")
+        for j, angle in enumerate(self.rest_pose_rad, start=1):
+            _check_range(f"rest_pose_rad[{j}]", angle, -math.pi, math.pi)
+        _check_range("rest_gripper_m", self.rest_gripper_m, 0.0, 0.1)
+        _check_range("gripper_effort_nm", self.gripper_effort_nm, 0.0, GRIPPER_EFFORT_MAX_NM)
+        _check_range("feedback_timeout_s", self.feedback_timeout_s, 0.0, MAX_FEEDBACK_TIMEOUT_S, positive=True)
+        _check_range("rest_speed_rad_s", self.rest_speed_rad_s, 0.0, MAX_JOINT_SPEED_RAD_S, positive=True)
+        # Shorter than the firmware's delayed motor-off, a reset's re-enable would be lost (the arm left limp).
+        _check_range("reset_settle_s", self.reset_settle_s, RESET_MOTOR_OFF_S, 60.0)
+        for name in ("connect_timeout_s", "enable_timeout_s", "rest_timeout_s"):
+            _check_range(name, getattr(self, name), 0.0, 600.0, positive=True)
+        if isinstance(self.bitrate, bool) or not isinstance(self.bitrate, int) or self.bitrate <= 0:
+            raise ValueError(f"bitrate must be a positive integer, got {self.bitrate!r}")
         for name, kind in (
             ("disconnect_policy", DisconnectPolicy),
             ("recovery", Recovery),
@@ -151,8 +167,23 @@ class DriverSettings:
     def _check_motion(self) -> None:
         if self.motion_mode not in MOTION_MODES:
             raise ValueError(f"motion_mode must be one of {MOTION_MODES}, got {self.motion_mode!r}")
-        if not 0 <= self.speed_percent <= 100:
-            raise ValueError(f"speed_percent must be 0..100, got {self.speed_percent}")
+        check_speed_percent(self.speed_percent)
+
+
+def check_speed_percent(value: object) -> None:
+    """``speed_percent``: an integer 0..100 (the 0x151 byte)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
+        raise ValueError(f"speed_percent must be an integer 0..100, got {value!r}")
+
+
+def _check_range(name: str, value: object, lower: float, upper: float, positive: bool = False) -> None:
+    """One clear error unless ``value`` is a finite number in ``[lower, upper]`` (above ``lower`` when
+    ``positive``); NaN fails every bound."""
+    number = not isinstance(value, bool) and isinstance(value, int | float)
+    if number and math.isfinite(value) and (lower < value if positive else lower <= value) and value <= upper:
+        return
+    bounds = f"({lower}, {upper}]" if positive else f"[{lower}, {upper}]"
+    raise ValueError(f"{name} must be a finite number in {bounds}, got {value!r}")
 
 
 @dataclass
@@ -169,8 +200,16 @@ class DriverConfig(DriverSettings):
     def __post_init__(self) -> None:
         super().__post_init__()
         steps = self.joint_steps()
-        if steps is not None and any(s <= 0 or not math.isfinite(s) for s in steps):
+        if steps is not None and not all(0 < s and math.isfinite(s) for s in steps):
             raise ValueError(f"max_step_rad must be positive and finite, got {self.max_step_rad}")
+        if self.max_gripper_step_m is not None:
+            _check_range("max_gripper_step_m", self.max_gripper_step_m, 0.0, math.inf, positive=True)
+        for j, (angle, (lower, upper)) in enumerate(zip(self.rest_pose_rad, self.limits.joints_rad, strict=True), 1):
+            if not lower <= angle <= upper:
+                raise ValueError(f"rest_pose_rad joint_{j} = {angle} is outside its limits [{lower}, {upper}]")
+        lower, upper = self.limits.gripper_m
+        if not lower <= self.rest_gripper_m <= upper:
+            raise ValueError(f"rest_gripper_m = {self.rest_gripper_m} is outside the gripper range [{lower}, {upper}]")
 
     @classmethod
     def from_settings(cls, settings: DriverSettings, **extra: object) -> DriverConfig:

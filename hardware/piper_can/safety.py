@@ -54,9 +54,12 @@ def safe_target(goal: float, present: float, bounds: tuple[float, float], max_st
     """Clamp to the soft limits, then cap the move from ``present`` (LeRobot's ``max_relative_target``).
 
     The result is always within ``max_step`` of ``present``; it is within the limits whenever
-    ``present`` is, and otherwise moves toward them.
+    ``present`` is, and otherwise moves toward them. A step that is not positive and finite is refused
+    (a negative one would move away from the goal, NaN would remove the cap).
     """
     target = clamp(goal, *bounds)
     if max_step is not None:
+        if not (max_step > 0 and math.isfinite(max_step)):
+            raise ValueError(f"the step limit must be positive and finite, got {max_step!r}")
         target = clamp(target, present - max_step, present + max_step)
     return target

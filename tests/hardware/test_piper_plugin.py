@@ -120,6 +120,12 @@ def test_features_are_known_before_connecting(tmp_path):
         ({"joint_limits": {"joint_1": (-1.0, 1.0)}}, "joint_limits"),
         ({"disconnect_policy": "drop"}, "drop"),
         ({"speed_percent": 150}, "speed_percent"),
+        ({"gripper_max_relative_target": -0.01}, "max_gripper_step_m"),
+        ({"max_relative_target": dict.fromkeys(KEYS, math.nan)}, "max_step_rad"),
+        ({"max_relative_target": {**dict.fromkeys(KEYS, 0.1), "gripper.pos": -0.01}}, "max_gripper_step_m"),
+        ({"rest_speed_rad_s": -0.5}, "rest_speed_rad_s"),
+        ({"feedback_timeout_s": 1e9}, "feedback_timeout_s"),
+        ({"rest_pose_rad": (0.0, -0.3, 0.0, 0.0, 0.0, 0.0)}, "rest_pose_rad joint_2"),
     ],
 )
 def test_bad_follower_settings_are_refused(tmp_path, kw, match):
@@ -143,7 +149,8 @@ def test_follower_connects_observes_and_clamps_actions(arms, tmp_path):
         far = dict(zip(KEYS, (2.0, 2.0, -2.0, 0.0, 0.0, 0.0, 0.07), strict=True))
         sent = robot.send_action(far)
         assert list(sent) == KEYS
-        assert [sent[k] for k in KEYS] == pytest.approx([0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 0.07])
+        # 0.2 rad per joint, and the gripper's own 0.02 m (0.2 m would be no cap on a 0.07 m stroke)
+        assert [sent[k] for k in KEYS] == pytest.approx([0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 0.02])
         near = dict(zip(KEYS, (0.1, 0.1, -0.1, 0.0, 0.0, 0.0, 0.01), strict=True))
         assert robot.send_action(near) == pytest.approx(near)
         assert arms.until(lambda: arm.firmware.joints_rad[0] == pytest.approx(0.1, abs=1e-4))
@@ -165,6 +172,14 @@ def test_per_key_max_relative_target(arms, tmp_path):
         assert [sent[k] for k in KEYS] == pytest.approx([0.01, 0.02, -0.03, 0.04, 0.05, 0.06, 0.001])
     finally:
         robot.disconnect()
+
+
+def test_the_gripper_has_its_own_default_step_cap(tmp_path):
+    # The joints' 0.2 (rad) as metres would be no cap on a 0.07 m stroke.
+    driver = follower_config("x", tmp_path).driver_config()
+    assert driver.max_step_rad == 0.2 and driver.max_gripper_step_m == 0.02
+    tuned = follower_config("x", tmp_path, max_relative_target=0.1, gripper_max_relative_target=0.01).driver_config()
+    assert tuned.max_step_rad == 0.1 and tuned.max_gripper_step_m == 0.01
 
 
 def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):

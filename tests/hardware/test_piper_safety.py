@@ -18,8 +18,9 @@ QUANTUM = 1e-5  # > half of 0.001° in radians (8.7e-6): the encoding's rounding
 
 @pytest.fixture(scope="module")
 def stepped_rig() -> Iterator[Rig]:
-    """Connected and enabled in real time, then the emulator is stepped by the test (deterministic)."""
-    with make_rig(feedback_timeout_s=60.0, max_step_rad=MAX_STEP, max_gripper_step_m=MAX_GRIPPER_STEP) as rig:
+    """Connected and enabled on simulated time, then the emulator is stepped by the test (deterministic;
+    the clock stands still, so the watchdog never sees an old frame: its largest setting is plenty)."""
+    with make_rig(feedback_timeout_s=1.0, max_step_rad=MAX_STEP, max_gripper_step_m=MAX_GRIPPER_STEP) as rig:
         rig.emulator.stop()
         yield rig
 
