@@ -77,7 +77,8 @@ RESET_MOTOR_OFF_S = 0.73
 # An e-stop frame the bus refuses (a full TX queue) is retried every period until this much time passed.
 ESTOP_RETRY_S = 0.1
 ESTOP_RETRY_PERIOD_S = 0.001
-# The firmware refuses to enable a joint at (within this) or past its limit.
+# A joint that stays disabled this close to (or past) its limit is named as why: the firmware does not
+# enable a joint past its limit.
 LIMIT_MARGIN_RAD = math.radians(0.5)
 # Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
 LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
@@ -468,17 +469,16 @@ class PiperDriver:
             f"PiPER on {self.link.where} did not report enabled within {self.config.enable_timeout_s:.1f} s after "
             f"{requests} enable requests (still disabled: {', '.join(missing)}); "
         )
-        outside = [
+        angles = state.joint_positions_rad or ()
+        at_limit = [
             f"joint_{j} at {angle:.4f} rad, limits [{lower:.4f}, {upper:.4f}]"
-            for j, (angle, (lower, upper)) in enumerate(
-                zip(state.joint_positions_rad or (), self.limits.joints_rad, strict=False), start=1
-            )
-            if not lower - LIMIT_MARGIN_RAD <= angle <= upper + LIMIT_MARGIN_RAD
+            for j, (angle, (lower, upper)) in enumerate(zip(angles, self.limits.joints_rad, strict=False), start=1)
+            if f"joint_{j}" in missing and not lower + LIMIT_MARGIN_RAD < angle < upper - LIMIT_MARGIN_RAD
         ]
-        if outside:
+        if at_limit:
             return message + (
-                f"the firmware refuses to enable a joint at or past its limit ({'; '.join(outside)}): support the "
-                "arm, move that joint back inside by hand (motors off), then enable again"
+                f"the firmware does not enable a joint past its limit ({'; '.join(at_limit)}): support the arm, "
+                "move that joint back inside its limits by hand (its motor is off), then enable again"
             )
         return message + "check the e-stop button and the arm's power"
 

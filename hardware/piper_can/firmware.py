@@ -9,7 +9,8 @@ enable state machine with latency and no acknowledgement; joints that move towar
 limits (clamp or reject, with the firmware's status and error bits); the gripper; e-stop, and a reset
 that clears the status at once but switches the motors off ``reset_motor_off_delay_s`` later (as
 measured on a real arm); firmware older than S-V1.8-5 ignoring 0x151 in high-follow until a reset;
-0x475 clear-error; firmware-version and limit replies. Leader role (0x470 0xFA): emits
+no enable for a joint past its limit; 0x475 clear-error; firmware-version and limit replies; host
+frames lost on the firmware's side (``lose_next``). Leader role (0x470 0xFA): emits
 0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host commands.
 """
 
@@ -131,6 +132,8 @@ class EmulatorConfig:
     disabled_behaviour: Literal["hold", "drop"] = "hold"
     drop_rad_s: float = 1.0
     start_enabled: bool = False  # enabled in CAN mode and high-follow, as after a hardware-linked leader
+    # A real arm refuses to enable a joint that sits past its limit (e.g. J2 slightly below 0 rad).
+    refuse_enable_past_limit: bool = True
     strict: bool = False  # log every ignored frame
     firmware_text: str = "H-V1.2-1 S-V1.8-2 P-V1.0.0 PiPER emulator"
     firmware_frames: int = 11
@@ -189,6 +192,8 @@ class PiperFirmware:
         self.frame_log: deque[LoggedFrame] = deque(maxlen=self.config.log_size)
         self.ignored: Counter[str] = Counter()
         self.drop_ids: set[int] = set()
+        # Host frames that reach the bus but are lost on the firmware's side: ID -> how many more to lose.
+        self.lose_next: Counter[int] = Counter()
         self.silent = False
         self.leader_pose: tuple[tuple[float, ...], float] | None = None
         self._frozen: list[Frame] | None = None
@@ -310,6 +315,9 @@ class PiperFirmware:
         self.frame_log.append(LoggedFrame(self.time_s, "rx", frame_id, data))
         if self.silent:
             return []
+        if self.lose_next[frame_id] > 0:
+            self.lose_next[frame_id] -= 1
+            return self._ignore("lost", frame)
         if extended_id or len(data) != DLC:
             return self._ignore("wrong DLC or extended ID", frame)
         try:
@@ -452,7 +460,17 @@ class PiperFirmware:
             self._enables_since_reset += 1
             if self.config.double_enable_after_reset and self._enables_since_reset < 2:
                 return
+            if self.config.refuse_enable_past_limit:
+                inside = tuple(j for j in joints if self._within_limits(j))
+                if inside != joints:
+                    self._ignore("joint past its limit", frame)
+                    joints = inside
         self._pending.append(_PendingEnable(self.time_s + self.config.enable_latency_s, joints, cmd.enable))
+
+    def _within_limits(self, joint: int) -> bool:
+        lower, upper = self.config.limits.joints_rad[joint - 1]
+        position = self._joints[joint - 1].position
+        return lower - _LIMIT_TOLERANCE_RAD <= position <= upper + _LIMIT_TOLERANCE_RAD
 
     def _on_joint_config(self, cmd: JointConfig, frame: Frame) -> list[Frame]:
         if cmd.set_zero or cmd.accel_valid:
@@ -588,8 +606,8 @@ class PiperFirmware:
     def _status(self) -> ArmStatus:
         reached = all(abs(j.target - j.position) < _REACHED_TOLERANCE_RAD for j in self._joints)
         angle_limit_mask = 0
-        for j, (joint, (lower, upper)) in enumerate(zip(self._joints, self.config.limits.joints_rad, strict=True)):
-            if not lower - _LIMIT_TOLERANCE_RAD <= joint.position <= upper + _LIMIT_TOLERANCE_RAD:
+        for j in range(NUM_JOINTS):
+            if not self._within_limits(j + 1):
                 angle_limit_mask |= 1 << j
         return ArmStatus(
             ctrl_mode=self.ctrl_mode,

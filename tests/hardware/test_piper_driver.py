@@ -418,9 +418,26 @@ def test_enable_refuses_when_feedback_does_not_confirm_the_mode():
 
 
 # -------------------------------------------------------------------- recoverable faults (issue 12.4)
-def test_an_arm_just_past_a_limit_enables_and_commands_move_it_back():
-    with make_rig(EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0))) as rig:
+def test_an_arm_just_past_a_limit_cannot_be_enabled_and_the_error_says_why():
+    # A real arm does not enable a joint past its limit (issue 34, item 6): the error names it and the remedy.
+    past = EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0))
+    with make_rig(past, enable=False, enable_timeout_s=0.3) as rig:
         assert rig.driver.state().faults() == (codec_fault("joint_2", "angle limit exceeded"),)
+        rig.driver.checked_state()  # logged, not raised
+        with pytest.raises(EnableTimeoutError) as err:
+            rig.driver.enable()
+        message = str(err.value)
+        assert "still disabled: joint_2)" in message and "check the e-stop" not in message
+        assert "does not enable a joint past its limit (joint_2 at -0.0200 rad, limits [0.0000, 3.1416])" in message
+        assert "move that joint back inside its limits by hand" in message
+        assert rig.arm.ignored["joint past its limit"] > 0
+
+
+def test_a_joint_pushed_past_a_limit_while_enabled_is_brought_back_by_commands():
+    with make_rig() as rig:
+        with rig.emulator.locked() as arm:
+            arm.set_position(2, -0.02)  # pushed by hand while enabled
+        assert rig.until(lambda: rig.driver.state().faults() == (codec_fault("joint_2", "angle limit exceeded"),))
         rig.driver.checked_state()  # logged, not raised: commands are what bring it back
         sent = rig.driver.command(POSE)
         assert sent.joints_rad[1] == pytest.approx(-0.02 + 0.2, abs=1e-5)  # toward (and into) the limits
@@ -618,6 +635,17 @@ def test_a_command_that_fails_half_way_is_reported_as_such(rig):
         rig.driver.command(POSE, 0.01)
     assert (err.value.sent, err.value.unsent) == ((0x151, 0x155), (0x156, 0x157, 0x159))
     assert "command stopped after 2 of 5 frames (sent 0x151, 0x155; not sent 0x156, 0x157, 0x159)" in str(err.value)
+
+
+def test_a_mode_frame_lost_on_the_firmwares_side_is_resent_until_the_status_confirms_it():
+    # The frame is on the bus (every listener saw it) but the firmware never acts on it.
+    with make_rig(enable=False) as rig:
+        rig.arm.lose_next[0x151] = 1
+        rig.drain()
+        rig.driver.enable()
+        assert rig.arm.ignored["lost"] == 1 and rig.arm.ctrl_mode == codec.CtrlMode.CAN
+        modes = [m.timestamp for m in rig.drain() if m.arbitration_id == 0x151]
+        assert len(modes) == 2 and modes[1] - modes[0] == pytest.approx(0.05, abs=0.0025)
 
 
 def test_a_lost_mode_frame_is_resent_until_the_status_confirms_it():

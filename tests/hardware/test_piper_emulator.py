@@ -161,6 +161,27 @@ def test_a_joint_outside_its_limit_sets_its_error_bit(host):
     assert host.latest(0x2A1).angle_limit_joints == (5,)
 
 
+def test_a_joint_past_its_limit_is_not_enabled():
+    host = make_host(EmulatorConfig(initial_pose_rad=(0.0, -0.01, 0.0, 0.0, 0.0, 0.0)))
+    host.send(MotorEnable(7, True))
+    host.step(10)
+    assert host.emulator.enabled == (True, False, True, True, True, True)
+    assert host.emulator.ignored["joint past its limit"] == 1
+    host.emulator.set_position(2, 0.0)  # moved back inside by hand
+    host.send(MotorEnable(7, True))
+    host.step(10)
+    assert host.emulator.enabled == (True,) * 6
+
+
+def test_a_host_frame_can_be_lost_on_the_firmwares_side(host):
+    host.emulator.lose_next[0x151] = 1
+    host.send(ModeControl(1, 1, 50, 0))
+    assert host.emulator.ctrl_mode == codec.CtrlMode.STANDBY and host.emulator.ignored["lost"] == 1
+    assert [f.arbitration_id for f in host.emulator.frame_log if f.direction == "rx"] == [0x151]  # it was heard
+    host.send(ModeControl(1, 1, 50, 0))
+    assert host.emulator.ctrl_mode == codec.CtrlMode.CAN
+
+
 def test_gripper_units_range_effort_and_zero(host):
     host.enable_can_mode()
     host.send(GripperCommand(0.05, 2.0, 0x01))
