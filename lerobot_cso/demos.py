@@ -7,12 +7,14 @@ gives the same dataset, bit for bit, however the work is split over envs or inte
 ``keep_failed=false`` failed episodes are dropped and the next seeds are tried until each task has
 ``episodes_per_task`` successes.
 
-Features: ``observation.state`` (39, float32), ``action`` (4, float32, as executed), optional
-``observation.images.<camera>`` (128×128 ``image``), ``task`` = the task's language description, and per-frame
-episode metadata that LeRobot's tools carry along: ``metaworld.task`` (task name), ``metaworld.init_seed``
-and ``metaworld.success`` (the episode's outcome). The episode length is LeRobot's own ``length``. The
-generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other
-settings, or anything else, is refused.
+Features: ``observation.state`` (float32; the ``state`` layout of
+:data:`~lerobot_cso.envs.constants.STATE_LAYOUTS`: the full 39-d state by default, ``proprio`` for QueST's 8-d
+camera setting — the expert always reads the full state, the dataset keeps the layout's part), ``action`` (4,
+float32, as executed), optional ``observation.images.<camera>`` (``image_size``², PNG ``image``), ``task`` = the
+task's language description, and per-frame episode metadata that LeRobot's tools carry along: ``metaworld.task``
+(task name), ``metaworld.init_seed`` and ``metaworld.success`` (the episode's outcome). The episode length is
+LeRobot's own ``length``. The generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a
+dataset made with other settings, or anything else, is refused.
 
 **An existing dataset instead** (``dataset_root``, with its ``repo_id``): for a world without a scripted expert
 (LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
@@ -45,11 +47,12 @@ from tqdm import tqdm
 from lerobot_cso.durable import EpisodeJournal, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.config import parse_cameras
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.envs.metaworld_env import select_state
 from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.rollout.world import MetaWorld, SimWorld, world_for
-from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
+from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
 
 SPEC_FILE = "meta/cso_demos.json"
 TASK_KEY = "metaworld.task"
@@ -71,6 +74,9 @@ class DemosConfig:
     # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU).
     cameras: str = ""
     image_size: int = IMAGE_SIZE
+    # What observation.state holds: full (39-d, object and goal positions), proprio (QueST's 8-d hand + gripper,
+    # now and one frame before; with a camera the policy must find the objects in the image), hand (LeRobot's 4-d).
+    state: str = "full"
     max_steps: int = HORIZON
     num_envs: int = 4
     output_dir: Path = Path("outputs/demos/metaworld")
@@ -87,6 +93,7 @@ class DemosConfig:
             "keep_failed": self.keep_failed,
             "cameras": list(parse_cameras(self.cameras)),
             "image_size": self.image_size,
+            "state": self.state,
             "max_steps": self.max_steps,
             "fps": FPS,
         }
@@ -104,8 +111,7 @@ class DemosConfig:
             )
         if self.episodes_per_task <= 0:
             raise UsageError(f"episodes_per_task must be > 0, got {self.episodes_per_task}")
-        if self.noise_std < 0:
-            raise UsageError(f"noise_std must be >= 0, got {self.noise_std}")
+        check_number("noise_std", self.noise_std, ge=0)
         if not 1 <= self.max_steps <= HORIZON:
             raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
         if self.num_envs < 1:
@@ -113,6 +119,10 @@ class DemosConfig:
         unknown = [c for c in parse_cameras(self.cameras) if c not in CAMERAS]
         if unknown:
             raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
+        if self.state not in STATE_LAYOUTS:
+            raise UsageError(f"state must be one of {', '.join(STATE_LAYOUTS)}, got {self.state!r}")
+        if parse_cameras(self.cameras) and not 16 <= self.image_size <= 512:
+            raise UsageError(f"image_size must be in [16, 512], got {self.image_size}")
         return tasks
 
 
@@ -134,10 +144,11 @@ def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     except OSError as e:  # not on disk, and the Hub is unreachable or has no such dataset
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise UsageError(f"{root} holds no LeRobotDataset and {cfg.repo_id} could not be fetched: {reason}") from None
-    for key, dim in (("observation.state", world.state_dim), ("action", world.action_dim)):
+    for key, dims in (("observation.state", world.state_dims), ("action", (world.action_dim,))):
         shape = tuple(meta.features[key]["shape"]) if key in meta.features else None
-        if shape != (dim,):
-            raise UsageError(f"{root}: {world.name} needs '{key}' of shape ({dim},), the dataset has {shape}")
+        if shape not in [(dim,) for dim in dims]:
+            wanted = " or ".join(f"({dim},)" for dim in dims)
+            raise UsageError(f"{root}: {world.name} needs '{key}' of shape {wanted}, the dataset has {shape}")
     cameras = [key.removeprefix("observation.images.") for key in meta.camera_keys]
     unknown = [cam for cam in cameras if cam not in world.cameras]
     if unknown:
@@ -154,10 +165,10 @@ def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     return tasks, meta
 
 
-def dataset_features(cameras: Iterable[str], image_size: int) -> dict[str, dict]:
+def dataset_features(cameras: Iterable[str], image_size: int, state: str = "full") -> dict[str, dict]:
     """LeRobotDataset features of a demo dataset."""
     features: dict[str, dict] = {
-        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
+        "observation.state": {"dtype": "float32", "shape": (STATE_LAYOUTS[state],), "names": None},
         "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": ["dx", "dy", "dz", "gripper"]},
         TASK_KEY: {"dtype": "string", "shape": (1,), "names": None},
         SEED_KEY: {"dtype": "int64", "shape": (1,), "names": None},
@@ -195,9 +206,10 @@ def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
     spec_path = out / SPEC_FILE
     if not spec_path.is_file():
         raise UsageError(f"{out} exists and is not a demo dataset of lerobot-cso; choose another --output_dir")
-    spec = json.loads(spec_path.read_text())
-    if spec != cfg.spec():
-        diff = {k: (spec.get(k), v) for k, v in cfg.spec().items() if spec.get(k) != v}
+    spec = without_added_settings(json.loads(spec_path.read_text()))
+    wanted = without_added_settings(cfg.spec())
+    if spec != wanted:
+        diff = {k: (spec.get(k), v) for k, v in wanted.items() if spec.get(k) != v}
         raise UsageError(
             f"{out} holds a different dataset (setting: (on disk, requested) = {diff}); choose another --output_dir"
         )
@@ -268,7 +280,7 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
         ds = LeRobotDataset.create(
             cfg.repo_id,
             FPS,
-            dataset_features(cameras, cfg.image_size),
+            dataset_features(cameras, cfg.image_size, cfg.state),
             root=work,
             robot_type="sawyer",
             use_videos=False,
@@ -287,7 +299,7 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
             }
             for t in range(len(ep["actions"])):
                 frame = {
-                    "observation.state": ep["states"][t],
+                    "observation.state": select_state(ep["states"][t], cfg.state),
                     "action": ep["actions"][t],
                     "task": task_description(task),
                 }

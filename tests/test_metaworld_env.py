@@ -149,3 +149,31 @@ def test_env_config_features_and_one_vector_env_per_task():
 def test_plugin_import_is_light():
     code = "import sys, lerobot_policy_cso; assert 'metaworld' not in sys.modules and 'mujoco' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_state_layouts_are_the_full_states_parts():
+    """proprio = QueST's hand xyz + gripper now and one frame before (obs[0:4] ++ obs[18:22]); hand = obs[0:4]."""
+    full = trajectory(CSOMetaWorldEnv("button-press-v3"), "button-press-v3", 5, steps=3)
+    for state, columns in (("proprio", [0, 1, 2, 3, 18, 19, 20, 21]), ("hand", [0, 1, 2, 3])):
+        env = CSOMetaWorldEnv("button-press-v3", state=state)
+        part = trajectory(env, "button-press-v3", 5, steps=3)
+        np.testing.assert_array_equal(part, full[:, columns])
+        assert env.observation_space["agent_pos"].shape == (len(columns),)
+    np.testing.assert_array_equal(full[1:, 18:22], full[:-1, 0:4])  # the previous frame, as QueST reads it
+    with pytest.raises(ValueError, match="unknown state layout"):
+        CSOMetaWorldEnv("reach-v3", state="object")
+
+
+def test_render_every_renders_only_decision_frames_and_the_first_frame_is_framed():
+    env = CSOMetaWorldEnv("drawer-close-v3", cameras=("corner2",), image_size=32, state="proprio")
+    framed = CSOMetaWorldEnv("drawer-close-v3", cameras=("corner2",), image_size=32)
+    framed.reset(seed=2)  # a second reset: the camera pose is surely current
+    second, _ = framed.reset(seed=3)
+    first, _ = env.reset(seed=3, options={"render_every": 4})
+    np.testing.assert_array_equal(first["pixels"]["corner2"], second["pixels"]["corner2"])  # the first frame too
+    frames = [first["pixels"]["corner2"]]
+    for _ in range(8):
+        obs, *_ = env.step(np.array([0.0, 1.0, 0.0, 0.0], np.float32))
+        frames.append(obs["pixels"]["corner2"])
+    assert all(frames[t] is frames[t - t % 4] for t in range(9))  # steps 1-3 and 5-7 repeat the decision frame
+    assert not np.array_equal(frames[0], frames[4]) and not np.array_equal(frames[4], frames[8])  # the hand moved

@@ -1,10 +1,11 @@
 """``--env.type=cso_metaworld``: the MetaWorld env as a LeRobot ``EnvConfig`` (lerobot-eval, lerobot-train).
 
-State observations (39-d ``observation.state``) and, when ``cameras`` is set, 128×128
-``observation.images.<camera>``. ``task`` takes one task, a comma list, or a set name (``MT10``,
-``ML45-train``, ...); each task gets its own vector env under a group named after the task, so LeRobot's
-``eval_info.json`` reports a success rate per task name. Seeds that LeRobot passes to ``reset`` are shifted by
-``seed_offset`` (default: the start of the evaluation range of :mod:`lerobot_cso.envs.seeds`).
+State observations (``observation.state``: the 39-d state, or with ``state=proprio`` QueST's 8-d proprio, or
+``hand`` LeRobot's 4-d hand state) and, when ``cameras`` is set, ``image_size``² ``observation.images.<camera>``.
+``task`` takes one task, a comma list, or a set name (``MT10``, ``ML45-train``, ...); each task gets its own
+vector env under a group named after the task, so LeRobot's ``eval_info.json`` reports a success rate per task
+name. Seeds that LeRobot passes to ``reset`` are shifted by ``seed_offset`` (default: the start of the evaluation
+range of :mod:`lerobot_cso.envs.seeds`).
 
 Importing this module does not import metaworld; the envs are built in ``create_envs``.
 """
@@ -20,7 +21,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import ACTION_DIM, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
+from lerobot_cso.envs.constants import ACTION_DIM, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 
 
 def parse_cameras(cameras: str) -> tuple[str, ...]:
@@ -31,21 +32,24 @@ def parse_cameras(cameras: str) -> tuple[str, ...]:
 @EnvConfig.register_subclass("cso_metaworld")
 @dataclass
 class CSOMetaWorldEnvConfig(EnvConfig):
-    """MetaWorld v3 with the full 39-d state (LeRobot's ``metaworld`` type only offers pixels + 4-d state)."""
+    """MetaWorld v3 with the full 39-d state or QueST's proprio + camera (LeRobot's ``metaworld`` type: 4-d state)."""
 
     task: str = "reach-v3"
     fps: int = FPS
     episode_length: int = HORIZON
     cameras: str = ""
     image_size: int = IMAGE_SIZE
+    state: str = "full"
     seed_offset: int = seeds.EVAL.start
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.state not in STATE_LAYOUTS:
+            raise ValueError(f"env.state must be one of {', '.join(STATE_LAYOUTS)}, got {self.state!r}")
         self.features = {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(STATE_LAYOUTS[self.state],)),
         }
         self.features_map = {ACTION: ACTION, "agent_pos": OBS_STATE}
         for cam in parse_cameras(self.cameras):
@@ -60,6 +64,7 @@ class CSOMetaWorldEnvConfig(EnvConfig):
             "image_size": self.image_size,
             "max_episode_steps": self.episode_length,
             "seed_offset": self.seed_offset,
+            "state": self.state,
         }
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False) -> dict[str, dict[int, gym.vector.VectorEnv]]:

@@ -5,4 +5,9 @@ ACTION_DIM = 4  # Δxyz of the hand + gripper effort, in [-1, 1]
 FPS = 80  # control period: frame_skip 5 × 2.5 ms = 12.5 ms
 HORIZON = 500  # MetaWorld's max_path_length
 IMAGE_SIZE = 128
+# What ``observation.state`` holds, by name, and its size. "full": the 39-d MetaWorld observation (object and goal
+# positions included: privileged); "proprio": QueST's 8-d proprio, hand xyz + gripper of this and the previous
+# frame (obs[0:4] ++ obs[18:22]), for policies that must find the objects in a camera image; "hand": LeRobot's
+# own MetaWorld format, hand xyz + gripper (obs[0:4]).
+STATE_LAYOUTS = {"full": 39, "proprio": 8, "hand": 4}
 CAMERAS = ("corner", "corner2", "corner3", "corner4", "topview", "behindGripper", "gripperPOV")

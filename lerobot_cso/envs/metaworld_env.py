@@ -1,4 +1,4 @@
-"""A gymnasium env over MetaWorld v3 tasks: 39-d state, optional 128×128 cameras, seeded initial states.
+"""A gymnasium env over MetaWorld v3 tasks: a state (39-d, or proprio only), optional cameras, seeded initial states.
 
 Initial states are named by an integer: ``reset(seed=s)`` seeds the task's own RNG with ``seed_offset + s``
 and redraws object and goal positions from it (``_freeze_rand_vec=False``, ``seeded_rand_vec=True``, the
@@ -13,9 +13,14 @@ An episode terminates at the first success (``info["is_success"]``) and is trunc
 no simulation and every step returns the last observation; the rollout engine parks an env that has no
 episode left to run.
 
-The observation is a dict in LeRobot's env convention: ``agent_pos`` (39, float32), and with cameras
+The observation is a dict in LeRobot's env convention: ``agent_pos`` (float32), and with cameras
 ``pixels`` = ``{camera: uint8 (H, W, 3)}``, which ``lerobot.envs.utils.preprocess_observation`` maps to
-``observation.state`` and ``observation.images.<camera>``.
+``observation.state`` and ``observation.images.<camera>``. ``state`` picks what ``agent_pos`` holds
+(:data:`~lerobot_cso.envs.constants.STATE_LAYOUTS`): the full 39-d state (object and goal positions: what the
+scripted experts read), QueST's 8-d proprio (hand and gripper, now and one frame before: a policy that reads it
+must find the objects in the image), or LeRobot's 4-d hand state. ``reset(options={"render_every": k})``
+renders the cameras only on every ``k``-th step of the episode (the decision steps of a policy acting in chunks
+of ``k``); the other steps repeat the last frame.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import numpy as np
 from gymnasium import spaces
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_DIM
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 from lerobot_cso.envs.tasks import check_task, task_description
 
 _UPSIDE_DOWN = ("corner", "corner2")
@@ -62,8 +67,32 @@ def check_cameras(cameras: Sequence[str]) -> None:
         raise ValueError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
 
 
+def check_state(state: str) -> None:
+    """Raise ``ValueError`` naming the valid state layouts when ``state`` is not one."""
+    if state not in STATE_LAYOUTS:
+        raise ValueError(f"unknown state layout {state!r}; valid: {', '.join(STATE_LAYOUTS)}")
+
+
+def state_layout(dim: int) -> str:
+    """The state layout whose ``observation.state`` has ``dim`` values (a policy's or dataset's state size)."""
+    for name, size in STATE_LAYOUTS.items():
+        if size == dim:
+            return name
+    sizes = ", ".join(f"{size} ({name})" for name, size in STATE_LAYOUTS.items())
+    raise ValueError(f"a MetaWorld observation.state has {sizes} values, not {dim}")
+
+
+def select_state(full: np.ndarray, state: str) -> np.ndarray:
+    """The ``state`` layout's part of MetaWorld's 39-d observation (float32)."""
+    if state == "proprio":
+        full = np.concatenate([full[:4], full[18:22]])
+    elif state == "hand":
+        full = full[:4]
+    return full.astype(np.float32)
+
+
 class CSOMetaWorldEnv(gym.Env):
-    """One MetaWorld task at a time (switchable on reset), state observations, optional cameras."""
+    """One MetaWorld task at a time (switchable on reset), a state layout, optional cameras."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
 
@@ -76,16 +105,19 @@ class CSOMetaWorldEnv(gym.Env):
         seed_offset: int = 0,
         render_camera: str | None = None,
         max_cached_tasks: int = 4,
+        state: str = "full",
     ) -> None:
         super().__init__()
         check_task(task)
         check_cameras(cameras)
+        check_state(state)
         if max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
         self.cameras = tuple(cameras)
         self.render_camera = render_camera or (self.cameras[0] if self.cameras else DEFAULT_RENDER_CAMERA)
         check_cameras([self.render_camera])
         self.image_size = image_size
+        self.state = state
         self.seed_offset = seed_offset
         self.render_mode = "rgb_array"
         self._max_episode_steps = max_episode_steps
@@ -95,9 +127,11 @@ class CSOMetaWorldEnv(gym.Env):
         self._set_task(task)
         self._t = 0
         self._parked = False
+        self._render_every = 1
         self._last_obs: dict[str, Any] | None = None
 
-        obs_spaces: dict[str, spaces.Space] = {"agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), dtype=np.float32)}
+        state_space = spaces.Box(-np.inf, np.inf, (STATE_LAYOUTS[state],), dtype=np.float32)
+        obs_spaces: dict[str, spaces.Space] = {"agent_pos": state_space}
         if self.cameras:
             image = spaces.Box(0, 255, (image_size, image_size, 3), dtype=np.uint8)
             obs_spaces["pixels"] = spaces.Dict({cam: image for cam in self.cameras})
@@ -116,6 +150,9 @@ class CSOMetaWorldEnv(gym.Env):
             sim._freeze_rand_vec = False
             sim.seeded_rand_vec = True
             sim.max_path_length = max(HORIZON, self._max_episode_steps)
+            # The corner2 framing QueST and LeRobot use, set before the first reset computes the camera poses (set
+            # with the renderer, the first frame of a task's first episode still had the default framing).
+            sim.model.cam_pos[sim.model.camera("corner2").id] = [0.75, 0.075, 0.7]
             self._sims[self.task] = sim
         self._sims.move_to_end(self.task)
         return sim
@@ -139,7 +176,6 @@ class CSOMetaWorldEnv(gym.Env):
             model.vis.quality.shadowsize = 0
             model.vis.global_.offwidth = self.image_size
             model.vis.global_.offheight = self.image_size
-            model.cam_pos[model.camera("corner2").id] = [0.75, 0.075, 0.7]  # the framing QueST and LeRobot use
             renderer = mujoco.Renderer(model, self.image_size, self.image_size)
             renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
@@ -152,16 +188,19 @@ class CSOMetaWorldEnv(gym.Env):
         image = renderer.render()
         return np.ascontiguousarray(image[::-1, ::-1]) if camera in _UPSIDE_DOWN else image
 
-    def _observation(self, state: np.ndarray) -> dict[str, Any]:
-        obs: dict[str, Any] = {"agent_pos": state.astype(np.float32)}
+    def _observation(self, full: np.ndarray) -> dict[str, Any]:
+        obs: dict[str, Any] = {"agent_pos": select_state(full, self.state)}
         if self.cameras:
-            obs["pixels"] = {cam: self._image(cam) for cam in self.cameras}
+            if self._t % self._render_every == 0 or self._last_obs is None:
+                obs["pixels"] = {cam: self._image(cam) for cam in self.cameras}
+            else:  # not a decision step: nobody reads this frame
+                obs["pixels"] = self._last_obs["pixels"]
         return obs
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Start an episode from initial state ``seed`` (options: ``task`` to switch, ``park`` to park)."""
+        """Start an episode from initial state ``seed`` (options: ``task``, ``park``, ``render_every``)."""
         super().reset(seed=seed)
         options = options or {}
         if options.get("park"):
@@ -176,6 +215,7 @@ class CSOMetaWorldEnv(gym.Env):
         state, _ = self.sim.reset()
         self._t = 0
         self._parked = False
+        self._render_every = max(1, int(options.get("render_every", 1)))
         self._last_obs = self._observation(state)
         return self._last_obs, {"is_success": False}
 

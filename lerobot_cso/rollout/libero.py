@@ -26,7 +26,7 @@ from types import ModuleType
 
 from lerobot_cso.envs import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
-from lerobot_cso.rollout.world import Purpose, RolloutSettings
+from lerobot_cso.rollout.world import Purpose, RolloutSettings, image_size_of, policy_features
 
 SUITE_PREFIX = "libero_"
 EVAL_SEEDS = 3  # the paper's three evaluation seeds
@@ -63,8 +63,8 @@ class Libero:
         self.spec = tasks
 
     @property
-    def state_dim(self) -> int:
-        return _env().STATE_DIM
+    def state_dims(self) -> tuple[int, ...]:
+        return (_env().STATE_DIM,)
 
     @property
     def action_dim(self) -> int:
@@ -109,9 +109,7 @@ class Libero:
         from lerobot_cso.rollout.pool import open_pool
 
         env = _env()
-        features = getattr(getattr(settings, "policy", None), "input_features", None) or {}
-        sizes = [ft.shape[-1] for key, ft in features.items() if key.startswith("observation.images.")]
-        image_size = sizes[0] if sizes else env.IMAGE_SIZE
+        image_size = image_size_of(policy_features(settings), env.IMAGE_SIZE)
         max_steps = getattr(settings, "max_steps", None)  # None: each task's suite horizon
         first = self.resolve_tasks(settings.tasks)[0]  # each job resets its slot onto its own task
         factory = partial(env.CSOLiberoEnv, first, tuple(cameras), image_size, max_steps)

@@ -8,10 +8,11 @@ is the world's own (MetaWorld: the reset seed, from the disjoint ranges of :mod:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal, Protocol
+from functools import partial
+from typing import Any, Literal, Protocol
 
 from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, STATE_DIM
+from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.rollout.backend import RolloutBackend
 
@@ -62,7 +63,7 @@ class World(Protocol):
 class SimWorld(World, Protocol):
     """A simulated world: the shapes of its observations and actions, which a dataset for it must have."""
 
-    state_dim: int  # observation.state
+    state_dims: tuple[int, ...]  # the sizes observation.state may have
     action_dim: int  # action
     cameras: tuple[str, ...]  # the cameras its envs render (observation.images.<camera>)
 
@@ -72,7 +73,7 @@ class MetaWorld:
 
     name = "metaworld"
     robot_type = "sawyer"
-    state_dim = STATE_DIM
+    state_dims = tuple(STATE_LAYOUTS.values())
     action_dim = ACTION_DIM
     cameras = CAMERAS
     fps = FPS
@@ -93,9 +94,34 @@ class MetaWorld:
         return seeds.eval_seeds(count, eval_seed)
 
     def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
+        """Envs whose state layout and image size are the ones the stage's policy reads."""
+        from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, state_layout
         from lerobot_cso.rollout.pool import open_pool
 
-        return open_pool(settings.num_envs, cameras, max_steps=settings.horizon(), vectorization=settings.vectorization)
+        features = policy_features(settings)
+        state = state_layout(features["observation.state"].shape[-1]) if "observation.state" in features else "full"
+        image_size = image_size_of(features, IMAGE_SIZE)
+        factory = partial(CSOMetaWorldEnv, "reach-v3", tuple(cameras), image_size, settings.horizon(), state=state)
+        return open_pool(
+            settings.num_envs,
+            cameras,
+            image_size=image_size,
+            max_steps=settings.horizon(),
+            vectorization=settings.vectorization,
+            env_factory=factory,
+            frames="all" if settings.records_frames else "decisions",
+        )
+
+
+def policy_features(settings: RolloutSettings) -> dict[str, Any]:
+    """The input features of the stage's policy (none when the settings carry no policy config)."""
+    return getattr(getattr(settings, "policy", None), "input_features", None) or {}
+
+
+def image_size_of(features: dict[str, Any], default: int) -> int:
+    """The side of the policy's (square) camera images, ``default`` when it reads none."""
+    sizes = [ft.shape[-1] for key, ft in features.items() if key.startswith("observation.images.")]
+    return sizes[0] if sizes else default
 
 
 def world_for(tasks: str) -> SimWorld:
