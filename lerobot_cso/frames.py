@@ -1,12 +1,13 @@
-"""A camera-free LeRobotDataset served from memory: the same items, without a per-item Arrow query.
+"""A LeRobotDataset served from memory: the same items, without a per-item Arrow query or PNG decode.
 
 ``LeRobotDataset.__getitem__`` formats one Arrow row, then one Arrow query per delta-timestamp key, and each
 query deep-copies the dataset's ``Features`` (≈ 4.5 ms per item with 32-action chunks on one core: more than
-the QueST update costs, measured in docs/cso-on-cpu.md). State-only datasets (the MetaWorld demos, R-SFT
-buffers without cameras) are small, so :class:`InMemoryFrames` reads every column once into tensors and
-builds each item by indexing them, with LeRobot's own padding rule. Everything else (``meta``,
-``episodes``, ``absolute_to_relative_idx`` …) is the wrapped dataset's. Datasets with cameras stay as they
-are (:func:`in_memory`).
+the QueST update costs, measured in docs/cso-on-cpu.md), and decodes every PNG camera frame it returns.
+The MetaWorld demos and R-SFT buffers are small, so :class:`InMemoryFrames` reads every column once into
+tensors — camera frames (``image`` features) decoded once and kept as uint8, a quarter of the float size —
+and builds each item by indexing them, with LeRobot's own padding rule and image transforms. Everything else
+(``meta``, ``episodes``, ``absolute_to_relative_idx`` …) is the wrapped dataset's. Datasets whose cameras are
+videos stay as they are (:func:`in_memory`): their frames live in the video files.
 """
 
 from typing import Any
@@ -18,17 +19,21 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 
 class InMemoryFrames(torch.utils.data.Dataset):
-    """``dataset[i]`` from tensors held in memory; identical items to the wrapped camera-free dataset's."""
+    """``dataset[i]`` from tensors held in memory; identical items to the wrapped dataset's (no video cameras)."""
 
     def __init__(self, dataset: LeRobotDataset) -> None:
-        if dataset.meta.camera_keys:
-            raise ValueError(f"InMemoryFrames serves camera-free datasets; this one has {dataset.meta.camera_keys}")
+        if dataset.meta.video_keys:
+            raise ValueError(f"InMemoryFrames serves datasets without videos; this one has {dataset.meta.video_keys}")
         self.dataset = dataset
-        rows = dataset.hf_dataset[:]  # one formatted read of every row: {column: [tensor per row]}
+        self.image_keys = list(dataset.meta.image_keys)
+        table = dataset.hf_dataset
+        rows = table.select_columns([c for c in table.column_names if c not in self.image_keys])[:]
         self.columns: dict[str, Any] = {
             key: torch.stack(values) if values and isinstance(values[0], torch.Tensor) else values
             for key, values in rows.items()
         }
+        for key in self.image_keys:
+            self.columns[key] = _uint8_frames(table.select_columns([key]), key)
         episodes = dataset.meta.episodes
         self.episode_bounds = {
             int(e): (int(a), int(b))
@@ -54,6 +59,10 @@ class InMemoryFrames(torch.utils.data.Dataset):
 
     def __getitem__(self, idx: int) -> dict[str, Any]:
         item = {key: column[idx] for key, column in self.columns.items()}
+        for key in self.image_keys:  # as LeRobot's transform makes them: float in [0, 1], (C, H, W)
+            item[key] = item[key].float().div(255)
+            if self.dataset.image_transforms is not None:
+                item[key] = self.dataset.image_transforms(item[key])
         absolute = int(item["index"])
         start, end = self.episode_bounds[int(item["episode_index"])]
         for key, deltas in self.delta_indices.items():
@@ -64,6 +73,16 @@ class InMemoryFrames(torch.utils.data.Dataset):
         return item
 
 
+def _uint8_frames(table: Any, key: str, rows_per_read: int = 1024) -> torch.Tensor:
+    """Every frame of image column ``key`` (N, C, H, W) as uint8, decoded a slice of rows at a time (the float
+    tensors of a whole table would not fit in memory)."""
+    parts = []
+    for start in range(0, len(table), rows_per_read):
+        frames = torch.stack(table[start : start + rows_per_read][key])  # float in [0, 1], exactly k / 255
+        parts.append(frames.mul(255).round_().to(torch.uint8))
+    return torch.cat(parts)
+
+
 def in_memory(dataset: LeRobotDataset) -> LeRobotDataset | InMemoryFrames:
-    """The dataset served from memory when it has no cameras, else the dataset itself."""
-    return dataset if dataset.meta.camera_keys else InMemoryFrames(dataset)
+    """The dataset served from memory unless its cameras are videos (then the dataset itself)."""
+    return dataset if dataset.meta.video_keys else InMemoryFrames(dataset)

@@ -42,11 +42,23 @@ def test_every_item_equals_lerobot_datasets(synthetic_dataset, episodes):
     assert fast.meta is ds.meta and fast.absolute_to_relative_idx == ds.absolute_to_relative_idx
 
 
-def test_datasets_with_cameras_are_left_alone(tmp_path):
-    ds = make_synthetic_dataset(tmp_path / "cam", episode_lengths=(5,), image_shape=(8, 8, 3))
+def test_camera_frames_equal_lerobot_datasets(tmp_path):
+    """PNG camera frames decoded once and kept as uint8 give the float frames LeRobot decodes per item."""
+    make_synthetic_dataset(tmp_path / "cam", episode_lengths=(5, 7), image_shape=(8, 8, 3))
+    ds = LeRobotDataset("local/synthetic", root=tmp_path / "cam", delta_timestamps=DELTAS)
+    fast = in_memory(ds)
+    assert isinstance(fast, InMemoryFrames) and fast.columns["observation.images.cam"].dtype == torch.uint8
+    for i in range(len(ds)):
+        assert_same_item(ds[i], fast[i])
+    assert fast[3]["observation.images.cam"].std() > 0.2  # random pixels, not a blank frame
+
+
+def test_video_datasets_are_left_alone(monkeypatch, tmp_path):
+    make_synthetic_dataset(tmp_path / "cam", episode_lengths=(5,), image_shape=(8, 8, 3))
     ds = LeRobotDataset("local/synthetic", root=tmp_path / "cam")
+    monkeypatch.setattr(type(ds.meta), "video_keys", property(lambda self: ["observation.images.cam"]))
     assert in_memory(ds) is ds
-    with pytest.raises(ValueError, match="camera-free"):
+    with pytest.raises(ValueError, match="without videos"):
         InMemoryFrames(ds)
 
 
