@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import partial
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, NormalizationMode
@@ -12,7 +13,9 @@ from lerobot.optim.schedulers import LRSchedulerConfig
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR
 
+from lerobot_cso.errors import check_number
 from lerobot_cso.policy.fast_prior import WEIGHT_FORMATS
+from lerobot_cso.policy.observation_encoder import IMAGE_BACKBONES
 
 SKILL_TOKENS_KEY = "observation.skill_tokens"
 SKILL_START_KEY = "observation.skill_start"
@@ -81,7 +84,11 @@ class CSOConfig(PreTrainedConfig):
     ae_dropout: float = 0.1
     fsq_levels: list[int] = field(default_factory=lambda: [8, 5, 5, 5])
 
-    # Observation encoders.
+    # Observation encoders. image_backbone: "resnet18" (QueST's stem + layer1 + layer2, the paper size) or "conv"
+    # (a four-layer conv net that trains on two CPU cores, docs/cso-on-cpu.md); image_shift: random-shift
+    # augmentation in pixels while training (QueST's; 0 = off).
+    image_backbone: str = "resnet18"
+    image_shift: int = 0
     image_keypoints: int = 128
     image_embed_dim: int = 256
     state_embed_dim: int = 128
@@ -129,10 +136,24 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"n_action_steps must be in [1, chunk_size={self.chunk_size}]")
         if len(self.ae_conv_kernels) != len(self.ae_conv_strides):
             raise ValueError("ae_conv_kernels and ae_conv_strides must have the same length")
-        if self.top_k is not None and self.top_k < 1:
-            raise ValueError("top_k must be >= 1 or None")
-        if self.temperature <= 0:
-            raise ValueError("temperature must be > 0")
+        check = partial(check_number, error=ValueError)  # every numeric setting finite and in range (NaN too)
+        check("top_k", self.top_k, ge=1, optional=True)
+        check("temperature", self.temperature, gt=0)
+        check("ae_dropout", self.ae_dropout, ge=0, lt=1)
+        check("prior_dropout", self.prior_dropout, ge=0, lt=1)
+        check("decoder_loss_scale", self.decoder_loss_scale, ge=0)
+        check("n_autoencoder_steps", self.n_autoencoder_steps, ge=0)
+        check("optimizer_lr", self.optimizer_lr, gt=0)
+        check("optimizer_min_lr", self.optimizer_min_lr, ge=0, le=self.optimizer_lr)
+        for beta in self.optimizer_betas:
+            check("each of optimizer_betas", beta, ge=0, lt=1)
+        check("optimizer_weight_decay", self.optimizer_weight_decay, ge=0)
+        check("optimizer_grad_clip_norm", self.optimizer_grad_clip_norm, gt=0)
+        check("scheduler_warmup_steps", self.scheduler_warmup_steps, ge=0)
+        if self.image_backbone not in IMAGE_BACKBONES:
+            raise ValueError(f"image_backbone must be one of {IMAGE_BACKBONES}, got {self.image_backbone!r}")
+        if self.image_shift < 0:
+            raise ValueError(f"image_shift must be >= 0, got {self.image_shift}")
         if self.inference_weights not in WEIGHT_FORMATS:
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:

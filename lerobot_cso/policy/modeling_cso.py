@@ -83,6 +83,8 @@ class CSOPolicy(PreTrainedPolicy):
             image_keypoints=config.image_keypoints,
             image_embed_dim=config.image_embed_dim,
             state_embed_dim=config.state_embed_dim,
+            image_backbone=config.image_backbone,
+            image_shift=config.image_shift,
         )
         self.prior = SkillPrior(
             vocab_size=config.vocab_size,

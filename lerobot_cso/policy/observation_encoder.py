@@ -6,26 +6,67 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from torch import Tensor, nn
+from torch.nn import functional as F  # noqa: N812
 from torchvision.models import resnet18
+
+IMAGE_BACKBONES = ("resnet18", "conv")
 
 
 def _module_key(feature_key: str) -> str:
     return feature_key.replace(".", "__")
 
 
-class ImageEncoder(nn.Module):
-    """ResNet-18 stem + layer1 + layer2 (random init, nothing downloaded) → spatial-softmax keypoints → Linear."""
+def resnet18_stem() -> nn.Sequential:
+    """QueST's backbone: ResNet-18 stem + layer1 + layer2 (random init, nothing downloaded), stride 8."""
+    net = resnet18(weights=None)
+    return nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
 
-    def __init__(self, image_shape: tuple[int, int, int], keypoints: int, embed_dim: int) -> None:
+
+def small_conv(channels: int = 32) -> nn.Sequential:
+    """A four-layer conv net, stride 4, GroupNorm (no batch statistics: training and rollouts compute the same
+    function): ~1/40 of the ResNet stem's multiply-adds at the same resolution, for two CPU cores."""
+
+    def block(c_in: int, c_out: int, stride: int) -> list[nn.Module]:
+        return [nn.Conv2d(c_in, c_out, 3, stride, 1), nn.GroupNorm(8, c_out), nn.ReLU()]
+
+    c = channels
+    return nn.Sequential(*block(3, c, 2), *block(c, c, 1), *block(c, 2 * c, 2), *block(2 * c, 2 * c, 1))
+
+
+def random_shift(images: Tensor, pad: int) -> Tensor:
+    """QueST's (and DrQ's) random-shift augmentation: pad each image by ``pad`` pixels (edge values) and crop
+    it back at a random offset, drawn per image."""
+    n, _, h, w = images.shape
+    padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, n)).tolist()
+    return torch.stack([padded[i, :, y : y + h, x : x + w] for i, (y, x) in enumerate(zip(dy, dx, strict=True))])
+
+
+class ImageEncoder(nn.Module):
+    """A conv backbone (``resnet18`` or ``conv``) → spatial-softmax keypoints → Linear; random shifts of
+    ``shift`` pixels while training."""
+
+    def __init__(
+        self,
+        image_shape: tuple[int, int, int],
+        keypoints: int,
+        embed_dim: int,
+        backbone: str = "resnet18",
+        shift: int = 0,
+    ) -> None:
         super().__init__()
-        net = resnet18(weights=None)
-        self.backbone = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
+        if backbone not in IMAGE_BACKBONES:
+            raise ValueError(f"image_backbone must be one of {', '.join(IMAGE_BACKBONES)}, got {backbone!r}")
+        self.backbone = resnet18_stem() if backbone == "resnet18" else small_conv()
+        self.shift = shift
         with torch.no_grad():
             feature_shape = self.backbone(torch.zeros(1, *image_shape)).shape[1:]
         self.keypoints = SpatialSoftmax(tuple(feature_shape), num_kp=keypoints)
         self.proj = nn.Linear(2 * keypoints, embed_dim)
 
     def forward(self, image: Tensor) -> Tensor:
+        if self.training and self.shift > 0:
+            image = random_shift(image, self.shift)
         return self.proj(self.keypoints(self.backbone(image)).flatten(1))
 
 
@@ -40,13 +81,17 @@ class ContextEncoder(nn.Module):
         image_keypoints: int,
         image_embed_dim: int,
         state_embed_dim: int,
+        image_backbone: str = "resnet18",
+        image_shift: int = 0,
     ) -> None:
         super().__init__()
         self.image_keys = [k for k, ft in input_features.items() if ft.type is FeatureType.VISUAL]
         self.lowdim_keys = [k for k, ft in input_features.items() if ft.type is not FeatureType.VISUAL]
         self.images = nn.ModuleDict(
             {
-                _module_key(k): ImageEncoder(tuple(input_features[k].shape), image_keypoints, image_embed_dim)
+                _module_key(k): ImageEncoder(
+                    tuple(input_features[k].shape), image_keypoints, image_embed_dim, image_backbone, image_shift
+                )
                 for k in self.image_keys
             }
         )
