@@ -17,7 +17,7 @@ With one process (plain ``lerobot-cso ...``) every function here is the identity
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import torch
@@ -57,15 +57,23 @@ class ShardedRollouts:
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
+        keep_frames: Collection[int] = (),
     ) -> RolloutResult:
         """As :meth:`RolloutEngine.rollout`; ``on_episode`` runs on the main process, for every episode."""
         states = [InitialState(*s) for s in initial_states]
         if self.world_size == 1:
-            return self.engine.rollout(states, k, sampling, seed, progress, on_episode, stop_after)
+            return self.engine.rollout(states, k, sampling, seed, progress, on_episode, stop_after, keep_frames)
         mine = list(range(self.rank, len(states), self.world_size))
         local = (
             self.engine.rollout(
-                [states[g] for g in mine], k, sampling, seeds.round_seed(seed, self.rank), progress, None, stop_after
+                [states[g] for g in mine],
+                k,
+                sampling,
+                seeds.round_seed(seed, self.rank),
+                progress,
+                None,
+                stop_after,
+                [i for i, g in enumerate(mine) if g in keep_frames],
             )
             if mine
             else None

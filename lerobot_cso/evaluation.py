@@ -10,7 +10,9 @@ sampling, so it is meaningful even with greedy decoding.
 
 Default sampling is QueST's: top-k = 5 at temperature 1. The std is the sample std over seeds (ddof=1;
 undefined, reported as null, with a single seed). Outputs: a markdown table on stdout, and ``eval.json``,
-``eval.csv`` and ``eval.png`` (bar chart) in ``output_dir``.
+``eval.csv`` and ``eval.png`` (bar chart) in ``output_dir``. With ``video_episodes=N`` the first N episodes of
+each task under the first evaluation seed are also written as videos of the camera the policy sees,
+``videos/<task>/<initial state>_<success|failure>.mp4``, one frame per decision (the frames the policy read).
 """
 
 import csv
@@ -24,6 +26,7 @@ import numpy as np
 from lerobot.configs import parser
 
 from lerobot_cso.errors import UsageError
+from lerobot_cso.rollout.world import policy_features
 from lerobot_cso.rollout_stage import RolloutStageConfig
 
 
@@ -37,6 +40,8 @@ class EvalConfig(RolloutStageConfig):
     episodes_per_task: int = 50
     # Comma list of evaluation seeds; each picks its own block of initial states and sampling RNG.
     seeds: str = "0"
+    # Videos of the first N episodes per task of the first seed (the policy's camera; needs a camera policy).
+    video_episodes: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -59,8 +64,29 @@ class EvalConfig(RolloutStageConfig):
         most = self.world().eval_states_per_seed
         if not 0 < self.episodes_per_task <= most:
             raise UsageError(f"episodes_per_task must be in [1, {most}], got {self.episodes_per_task}")
+        if not 0 <= self.video_episodes <= self.episodes_per_task:
+            raise UsageError(f"video_episodes must be in [0, episodes_per_task], got {self.video_episodes}")
+        from lerobot_cso.rollout.engine import cameras_of
+
+        if self.video_episodes and not cameras_of(policy_features(self)):
+            raise UsageError("video_episodes: the policy reads no camera, so there is no frame to write")
         self.eval_seeds()
         return tasks
+
+
+def write_videos(output_dir: Path, episodes: list[Any], camera: str, fps: float) -> list[Path]:
+    """One MP4 per episode of the frames its decisions read (LeRobot's ``write_video``), plus its last frame."""
+    from lerobot.utils.io_utils import write_video
+
+    paths = []
+    for e in episodes:
+        frames = e.images[camera]
+        steps = [*e.decision_steps.tolist(), len(frames) - 1]
+        path = output_dir / "videos" / e.task / f"{e.init_seed}_{'success' if e.success else 'failure'}.mp4"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_video(path, [frames[t].numpy() for t in steps], fps=max(1, round(fps)))
+        paths.append(path)
+    return paths
 
 
 def _stats(values: list[float]) -> tuple[float, float | None]:
@@ -144,7 +170,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
     from lerobot_cso import distributed
     from lerobot_cso.checkpoints import load_policy
-    from lerobot_cso.rollout.engine import RolloutEngine
+    from lerobot_cso.rollout.engine import RolloutEngine, policy_cameras
 
     tasks = cfg.validate()
     eval_seed_list = cfg.eval_seeds()
@@ -152,11 +178,19 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     policy, pre, post = load_policy(path, cfg.policy)
     world = cfg.world()
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
-    episodes, throughput = [], []
+    episodes, throughput, videos = [], [], []
     with distributed.ShardedRollouts(RolloutEngine.for_stage(policy, pre, post, cfg)) as engine:
         for s in eval_seed_list:
             states = [(task, init) for task in tasks for init in world.eval_states(task, s, cfg.episodes_per_task)]
-            result = engine.rollout(states, k=1, sampling=cfg.sampling, seed=s, progress=f"eval seed {s}")
+            first = s == eval_seed_list[0]
+            filmed = [i for i in range(len(states)) if first and i % cfg.episodes_per_task < cfg.video_episodes]
+            result = engine.rollout(
+                states, k=1, sampling=cfg.sampling, seed=s, progress=f"eval seed {s}", keep_frames=filmed
+            )
+            if filmed and distributed.is_main():
+                kept = [result.episodes[i] for i in filmed]
+                fps = world.fps / policy.config.n_action_steps
+                videos += [str(p) for p in write_videos(cfg.output_dir, kept, policy_cameras(policy)[0], fps)]
             for task in tasks:
                 success[task][s] = float(np.mean([e.success for e in result.episodes if e.task == task]))
             episodes += [
@@ -177,6 +211,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
         "world": world.name,
         "throughput": throughput,
         "episodes": episodes,
+        "videos": videos,
     }
     if distributed.is_main():
         write_outputs(cfg.output_dir, rows, record)

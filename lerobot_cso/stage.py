@@ -18,7 +18,13 @@ PIPELINE_FIELDS = ("tasks", "output_dir", "policy")  # set by the pipeline for e
 # Settings added after outputs had been recorded without them, at the values that behave as before they existed:
 # a record that lacks one is the same spec as one holding that value, so older outputs still resume (another
 # value is another spec). A new setting whose default keeps the old behaviour is added here with that default.
-ADDED_SETTINGS: dict[str, Any] = {"stop_state_at_cap": False, "train_threads": None, "advantage_weighted": False}
+ADDED_SETTINGS: dict[str, Any] = {
+    "stop_state_at_cap": False,
+    "train_threads": None,
+    "advantage_weighted": False,
+    "state": "full",
+    "video_episodes": 0,
+}
 
 
 class Stage(Protocol):

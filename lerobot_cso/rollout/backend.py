@@ -20,11 +20,14 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Job:
-    """One episode to run: a task, the initial state's id in its world, and the caller's handle for it."""
+    """One episode to run: a task, the initial state's id in its world, and the caller's handle for it;
+    ``keep_frames`` asks a backend that records no camera frames (only decisions are rendered) for this
+    episode's frames (e.g. for a video)."""
 
     task: str
     init_seed: int
     key: Any = None
+    keep_frames: bool = False
 
 
 @dataclass

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
@@ -293,8 +293,12 @@ class RolloutEngine:
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
+        keep_frames: Collection[int] = (),
     ) -> RolloutResult:
         """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample).
+
+        The episodes of the initial states at the indices ``keep_frames`` keep their camera frames even when the
+        backend records none (frames between decisions then repeat the decision's).
 
         ``on_episode`` is called with each episode as soon as it finishes (in finishing order). With
         ``stop_after``, a group whose finished samples hold that many successes starts no more samples: the
@@ -305,7 +309,7 @@ class RolloutEngine:
         if stop_after is not None and stop_after < 1:
             raise ValueError(f"stop_after must be >= 1, got {stop_after}")
         states = [InitialState(*s) for s in initial_states]
-        jobs = [Job(s.task, s.seed, (g, i)) for g, s in enumerate(states) for i in range(k)]
+        jobs = [Job(s.task, s.seed, (g, i), g in keep_frames) for g, s in enumerate(states) for i in range(k)]
         successes = [0] * len(states)
         skipped: set[int] = set()
 
@@ -349,5 +353,10 @@ class RolloutEngine:
 
 def policy_cameras(policy: SkillPolicy) -> list[str]:
     """The cameras a policy reads: its ``observation.images.<camera>`` inputs."""
+    return cameras_of(policy.config.input_features)
+
+
+def cameras_of(features: dict[str, Any]) -> list[str]:
+    """The cameras among a policy config's input features (its ``observation.images.<camera>`` inputs)."""
     prefix = f"{OBS_IMAGES}."
-    return [key.removeprefix(prefix) for key in policy.config.input_features if key.startswith(prefix)]
+    return [key.removeprefix(prefix) for key in features if key.startswith(prefix)]

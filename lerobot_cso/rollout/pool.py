@@ -27,8 +27,9 @@ of arguments and keeps it open when a stage closes it: the stages then start the
 their MuJoCo models once instead of once each.
 
 ``frames="decisions"`` asks the envs to render cameras only on the steps where episodes take decisions
-(``render_every=start_every``) and records no images in the traces: what evaluation and SPO need, which keep
-only the policy's contexts. ``"all"`` (default) records every frame, as an R-SFT buffer needs.
+(``render_every=start_every``) and records no images in the traces (but those of jobs marked ``keep_frames``,
+where the frames between decisions repeat the decision's): what evaluation and SPO need, which keep only the
+policy's contexts. ``"all"`` (default) records every frame, as an R-SFT buffer needs.
 """
 
 from __future__ import annotations
@@ -197,7 +198,6 @@ class EnvPool:
         as each episode finishes."""
         for task in {job.task for job in jobs}:
             self._check_task(task)
-        recorded = self.cameras if self.frames == "all" else ()
         start_options = {} if self.frames == "all" else {"render_every": start_every}
         scheduler = _Scheduler(jobs)
         # Forget the previous run's slot tasks: the same jobs then always get the same slots, hence the same
@@ -267,7 +267,8 @@ class EnvPool:
                             for slot, index, job in entries:
                                 running[slot] = (index, job)
                                 starting[slot] = True
-                                recorders[slot] = _Recorder(recorded)
+                                kept = self.frames == "all" or job.keep_frames
+                                recorders[slot] = _Recorder(self.cameras if kept else ())
                                 parked[slot] = False
                                 self._tasks[slot] = task
                                 controller.start(slot, job)
