@@ -68,7 +68,7 @@ class EvalConfig(RolloutStageConfig):
             raise UsageError(f"video_episodes must be in [0, episodes_per_task], got {self.video_episodes}")
         from lerobot_cso.rollout.engine import cameras_of
 
-        if self.video_episodes and not cameras_of(policy_features(self)):
+        if self.video_episodes and self.policy is not None and not cameras_of(policy_features(self)):
             raise UsageError("video_episodes: the policy reads no camera, so there is no frame to write")
         self.eval_seeds()
         return tasks
