@@ -68,7 +68,8 @@ class EvalConfig(RolloutStageConfig):
             raise UsageError(f"video_episodes must be in [0, episodes_per_task], got {self.video_episodes}")
         from lerobot_cso.rollout.engine import cameras_of
 
-        if self.video_episodes and self.policy is not None and not cameras_of(policy_features(self)):
+        features = policy_features(self)  # none on the pipeline's stand-in for a policy still to be trained
+        if self.video_episodes and features and not cameras_of(features):
             raise UsageError("video_episodes: the policy reads no camera, so there is no frame to write")
         self.eval_seeds()
         return tasks
