@@ -25,7 +25,7 @@ class PiperLeaderConfig(TeleoperatorConfig):
     bitrate: int = 1_000_000
     port: int | None = None
     source: str = "control"
-    # No leader joint frame for longer than this: get_action raises (the leader's rate is unverified).
+    # No leader joint or gripper frame for longer than this: get_action raises (its rate is unverified).
     timeout_s: float = 0.1
     connect_timeout_s: float = 2.0
 

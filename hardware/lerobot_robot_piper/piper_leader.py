@@ -36,8 +36,8 @@ class PiperLeader(Teleoperator):
             config.channel,
             config.bitrate,
             {} if config.port is None else {"port": config.port},
-            watch=dict.fromkeys(self._joint_ids, config.timeout_s),
-            watch_name="leader joint frame" if control else "leader joint feedback",
+            watch=dict.fromkeys((*self._joint_ids, self._gripper_id), config.timeout_s),
+            watch_name="leader frame" if control else "leader feedback",
             clock=clock,
         )
 

@@ -25,7 +25,7 @@ from piper_can import codec
 from piper_can.clock import SimulatedClock
 from piper_can.driver import DriverSettings
 from piper_can.emulator import PiperEmulator
-from piper_can.errors import FeedbackStaleError, FirmwareFaultError, PiperConnectionError
+from piper_can.errors import EnableTimeoutError, FeedbackStaleError, FirmwareFaultError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
 from piper_rig import unique_virtual_channel
 
@@ -174,6 +174,23 @@ def test_per_key_max_relative_target(arms, tmp_path):
         robot.disconnect()
 
 
+@pytest.mark.parametrize("bad", ["0.1", True, np.bool_(True), None, b"1"])
+def test_an_action_value_that_is_not_a_real_number_is_refused(arms, tmp_path, bad):
+    channel = unique_virtual_channel()
+    arm = arms(channel)
+    robot = arms.follower(follower_config(channel, tmp_path))
+    robot.connect()
+    try:
+        targets = dict.fromkeys(KEYS, 0.0)
+        with pytest.raises(ValueError, match="joint_2.pos must be a real number"):
+            robot.send_action({**targets, "joint_2.pos": bad})
+        assert arm.firmware.targets_rad == (0.0,) * 6
+        sent = robot.send_action({**targets, "joint_1.pos": np.float32(0.05), "gripper.pos": np.float64(0.01)})
+        assert sent["joint_1.pos"] == pytest.approx(0.05) and sent["gripper.pos"] == pytest.approx(0.01)
+    finally:
+        robot.disconnect()
+
+
 def test_the_gripper_has_its_own_default_step_cap(tmp_path):
     # The joints' 0.2 (rad) as metres would be no cap on a 0.07 m stroke.
     driver = follower_config("x", tmp_path).driver_config()
@@ -194,7 +211,23 @@ def test_leader_on_its_own_channel_reads_the_leader_frames(arms, tmp_path):
         assert list(action) == KEYS and [action[k] for k in KEYS] == pytest.approx(expected, abs=1e-5)
         arm.firmware.silent = True  # unplugged
         assert arms.until(lambda: leader.link.stale_error is not None, timeout=1.0)
-        with pytest.raises(FeedbackStaleError, match="no leader joint frame 0x15"):
+        with pytest.raises(FeedbackStaleError, match="no leader frame 0x15"):
+            leader.get_action()
+    finally:
+        leader.disconnect()
+
+
+@pytest.mark.parametrize(("source", "gripper_id"), [("control", 0x159), ("feedback", 0x2A8)])
+def test_a_leader_whose_gripper_frame_stops_is_stale(arms, tmp_path, source, gripper_id):
+    channel = unique_virtual_channel()
+    arm = arms(channel, EmulatorConfig(role="leader") if source == "control" else None)
+    leader = arms.leader(leader_config(channel, tmp_path, source=source))
+    leader.connect()
+    try:
+        leader.get_action()
+        arm.firmware.drop_ids = {gripper_id}  # the joints keep coming
+        assert arms.until(lambda: leader.link.stale_error is not None, timeout=1.0)
+        with pytest.raises(FeedbackStaleError, match=f"0x{gripper_id:X}"):
             leader.get_action()
     finally:
         leader.disconnect()
@@ -332,13 +365,21 @@ def test_camera_frames_join_the_observation(arms, tmp_path):
     assert not stub.is_connected
 
 
-def test_follower_connects_to_an_arm_just_past_a_limit_and_moves_it_back(arms, tmp_path):
+def test_follower_refuses_an_arm_just_past_a_limit_until_it_is_moved_back(arms, tmp_path):
     channel = unique_virtual_channel()
     arm = arms(channel, EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0)))
-    robot = arms.follower(follower_config(channel, tmp_path))
-    robot.connect()  # J2 at -0.02 rad (limit 0): logged, not refused
+    robot = arms.follower(follower_config(channel, tmp_path, enable_timeout_s=0.3))
+    # J2 at -0.02 rad (limit 0): the firmware does not enable it, and the error says what to do.
+    with pytest.raises(EnableTimeoutError, match="joint_2 at -0.0200 rad.*move that joint back inside"):
+        robot.connect()
+    assert not robot.is_connected
+    with arm.emulator.locked() as firmware:
+        firmware.set_position(2, 0.01)  # moved back by hand, motors off
+    robot.connect()
     try:
-        assert robot.get_observation()["joint_2.pos"] == pytest.approx(-0.02, abs=1e-5)
+        with arm.emulator.locked() as firmware:
+            firmware.set_position(2, -0.02)  # pushed past it again while enabled: commands bring it back
+        assert arms.until(lambda: robot.get_observation()["joint_2.pos"] == pytest.approx(-0.02, abs=1e-5))
         action = dict(zip(KEYS, (0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0), strict=True))
         assert arms.until(lambda: robot.send_action(action) and arm.firmware.joints_rad[1] > 0.05)
         assert robot.driver.state().faults() == ()

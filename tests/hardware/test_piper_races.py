@@ -12,7 +12,7 @@ import can
 import pytest
 from piper_can import codec
 from piper_can.driver import PiperDriver
-from piper_can.errors import ArmNotReadyError, EmergencyStopError
+from piper_can.errors import ArmNotReadyError, EmergencyStopError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
 from piper_rig import Rig, make_rig
 
@@ -268,3 +268,74 @@ def test_a_power_cycle_into_high_follow_during_a_feedback_gap_is_exited():
         rig.driver.enable()
         assert rig.arm.mit_mode == 0x00 and rig.arm.speed_percent == 50
         assert max_speed_of_a_step(rig, (0.2, 0.0, 0.0, 0.0, 0.0, 0.0)) <= 1.5 + 1e-6
+
+
+# ------------------------------------------------------------------ 6. smaller ones
+def test_a_late_frame_with_an_older_stamp_does_not_hide_a_disabled_joint():
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        walk_to(rig, POSE)
+        with rig.emulator.locked() as arm:
+            arm.set_enabled(3, False)  # a driver that cut out
+        assert rig.until(lambda: rig.driver.state().joints_enabled[2] is False)
+        kept = rig.driver.state().low_speed[2].timestamp
+        stale = codec.encode(codec.LowSpeedInfo(3, 24.0, 30, 28, 1 << codec.ENABLED_BIT, 0.3))
+        other = can.Bus(interface="virtual", channel=rig.channel, preserve_timestamps=True)
+        rig.buses.append(other)  # delivered late, stamped before the frame the driver keeps
+        late = can.Message(
+            timestamp=kept - 0.03, arbitration_id=stale.arbitration_id, data=stale.data, is_extended_id=False
+        )
+        other.send(late)
+        rig.driver.link.poll()
+        rig.drain()
+        with pytest.raises(ArmNotReadyError, match="joint_3 disabled"):
+            rig.driver.command(NEXT)
+        assert [m for m in rig.drain() if m.arbitration_id in MOTION_IDS] == []
+
+
+@pytest.mark.parametrize("refusals", [2, 1000])
+def test_the_estop_frame_is_retried_when_the_bus_refuses_it(refusals):
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        walk_to(rig, POSE)
+        bus = rig.driver.link._bus
+        real_send, refused = bus.send, []
+
+        def full_queue(msg, timeout=None):
+            if msg.arbitration_id == 0x150 and len(refused) < refusals:
+                refused.append(msg)
+                raise can.CanOperationError("Transmit buffer full")
+            real_send(msg, timeout)
+
+        bus.send = full_queue
+        rig.drain()
+        if refusals > 100:  # refused for longer than the retry window: an error, and the latch holds
+            with pytest.raises(PiperConnectionError, match="Transmit buffer full"):
+                rig.driver.emergency_stop()
+        else:
+            rig.driver.emergency_stop()
+            assert rig.until(lambda: rig.arm.estopped)
+            assert [m.data[0] for m in rig.drain() if m.arbitration_id == 0x150] == [0x01]
+        assert rig.driver.estopped
+        with pytest.raises(EmergencyStopError):
+            rig.driver.command(NEXT)
+
+
+def test_disconnect_rest_is_not_fought_by_another_commanding_thread():
+    with make_rig(EmulatorConfig(profile="light"), disconnect_policy="rest", rest_speed_rad_s=2.0) as rig:
+        walk_to(rig, POSE)
+        outcomes: list[str] = []
+
+        def other_thread() -> None:  # still commanding POSE every 5 ms while the disconnect walks home
+            if rig.driver.is_connected:  # time passes only inside disconnect() from here on
+                try:
+                    rig.driver.command(POSE)
+                    outcomes.append("sent")
+                except ArmNotReadyError:
+                    outcomes.append("refused")
+
+        rig.clock.every(0.005, other_thread)
+        rig.drain()
+        rig.driver.disconnect()
+        walk = [codec.decode_command(0x155, m.data).positions_rad[0] for m in rig.drain() if m.arbitration_id == 0x155]
+        assert outcomes and set(outcomes) == {"refused"}
+        assert all(b <= a + 1e-9 for a, b in zip(walk, walk[1:], strict=False)), "targets alternated"
+        assert rig.arm.enabled == (False,) * 6 and rig.arm.joints_rad == pytest.approx((0.0,) * 6, abs=0.011)
