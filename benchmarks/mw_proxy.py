@@ -1,10 +1,14 @@
-"""MW-proxy: IL, R-SFT only, SPO only, CSO and the token / trajectory / RIPT objectives on MetaWorld, per seed.
+"""MW-proxy: IL, R-SFT only, SPO only, CSO, CSO without the encoder freeze and the token / trajectory / RIPT
+objectives on MetaWorld, per seed.
 
 Per training seed ``s`` (IL seed, R-SFT seed and SPO seed all derive from it): the pipeline of
 ``--config`` (demos → IL → eval → R-SFT → eval → SPO → eval) gives ``il``, ``rsft`` and ``cso``; SPO from the IL
 checkpoint gives ``spo_only``; SPO with ``--objective=token|trajectory|ript`` from the same R-SFT checkpoint,
 with the same SPO settings (iterations, groups, K, draws, lr) and each objective's own default clip range
-(a clip range in the config is the skill objective's), gives ``token``, ``trajectory``, ``ript``. Every
+(a clip range in the config is the skill objective's), gives ``token``, ``trajectory``, ``ript``; the skill
+objective from the R-SFT checkpoint with ``encoder_freeze=false`` (SPO updates the observation encoders too)
+gives ``cso_no_freeze``, the paper's ablation of the freeze (R-SFT's freeze only marks the checkpoint: its
+weights are the same, so the ablation needs no second R-SFT run). Every
 evaluation is the config's ``eval`` section (held-out evaluation seed range). Env steps and episodes of every
 SPO run are counted and printed.
 
@@ -12,6 +16,7 @@ Each finished (method, seed) is written at once to ``--results`` (default
 ``benchmarks/results/mw_proxy.json``, committed with the measured run), and skipped when the command is run
 again, from this clone or another; unfinished stages resume from ``--work`` (their own records). All the
 rollout stages of a run share their env pools (:func:`~lerobot_cso.rollout.pool.kept_pools`), as in the pipeline.
+SPO's health per iteration (clip fraction, approximate KL, rejection rate) is kept for every SPO run.
 
     python benchmarks/mw_proxy.py             # configs/mw_proxy.yaml, seeds 0-2
     python benchmarks/mw_proxy.py --seeds=0   # one seed
@@ -21,6 +26,11 @@ Further arguments are pipeline settings over ``--config``, as ``lerobot-cso pipe
 of the config the results file is tied to:
 
     python benchmarks/mw_proxy.py --results=benchmarks/results/other.json --rsft.successes_per_task=200
+
+The camera benchmark (issue 33) is this driver on the camera demo's config:
+
+    python benchmarks/mw_proxy.py --config=configs/metaworld_vision_demo.yaml --work=outputs/mw_vision \
+        --results=benchmarks/results/mw_vision.json --methods=il,rsft,cso,spo_only,cso_no_freeze
 """
 
 import argparse
@@ -44,13 +54,17 @@ from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.rollout.pool import kept_pools
 from lerobot_cso.stage import settings_spec, without_added_settings
 
-METHODS = ("il", "rsft", "spo_only", "cso", "token", "trajectory", "ript")
+METHODS = ("il", "rsft", "spo_only", "cso", "cso_no_freeze", "token", "trajectory", "ript")
+# method -> (the checkpoint SPO starts from, objective, encoder_freeze)
 SPO_RUNS = {
-    "spo_only": ("il", "skill"),
-    "token": ("rsft", "token"),
-    "trajectory": ("rsft", "trajectory"),
-    "ript": ("rsft", "ript"),
+    "spo_only": ("il", "skill", True),
+    "cso_no_freeze": ("rsft", "skill", False),
+    "token": ("rsft", "token", True),
+    "trajectory": ("rsft", "trajectory", True),
+    "ript": ("rsft", "ript", True),
 }
+HEALTH = ("clip_fraction", "approx_kl", "rejection_rate")  # SPO's health, kept per iteration
+DIFFERENCES = (("cso", "il"), ("rsft", "il"), ("cso", "spo_only"), ("cso", "cso_no_freeze"))  # paired, with a CI
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 
@@ -84,6 +98,8 @@ def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
             )
         if results["command"].split("; ")[-1] != command:
             results["command"] += "; " + command
+        for method in METHODS:  # files made before a method existed
+            results["methods"].setdefault(method, {"per_seed": {}})
         return results
     return {
         "config": config,
@@ -102,8 +118,11 @@ def save(path: Path, results: dict[str, Any]) -> None:
         values = list(entry["per_seed"].values())
         entry["mean"] = float(np.mean(values)) if values else None
         entry["std"] = float(np.std(values, ddof=1)) if len(values) > 1 else None
-    results["cso_minus_il"] = paired_difference(results, "cso", "il")
-    results["rsft_minus_il"] = paired_difference(results, "rsft", "il")
+    for a, b in DIFFERENCES:
+        results[f"{a}_minus_{b}"] = paired_difference(results, a, b)
+    il, cso = (results["methods"][m]["mean"] for m in ("il", "cso"))
+    # the share of IL's gap to 100 % that CSO closes (the paper: 82 % on ML45)
+    results["gap_closed"] = None if il is None or cso is None or il == 1 else (cso - il) / (1 - il)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, json.dumps(results, indent=2).encode())
 
@@ -144,7 +163,7 @@ def run_seed(
     record_spo(results, "cso", key, history)
     results["seconds"].setdefault(key, {})["pipeline"] = time.perf_counter() - started  # keeps earlier runs
     save(path, results)
-    for method, (source, objective) in SPO_RUNS.items():
+    for method, (source, objective, freeze) in SPO_RUNS.items():
         if method not in methods or key in results["methods"][method]["per_seed"]:
             continue
         t0 = time.perf_counter()
@@ -153,6 +172,7 @@ def run_seed(
             objective=objective,
             clip_low=cfg.spo.clip_low if objective == "skill" else None,
             clip_high=cfg.spo.clip_high if objective == "skill" else None,
+            encoder_freeze=freeze,
             output_dir=cfg.output_dir / method,
         )
         history = run_spo(spo_cfg)
@@ -172,6 +192,7 @@ def record_spo(results: dict[str, Any], method: str, key: str, history: list[dic
     results["env_steps"].setdefault(method, {})[key] = steps
     results["episodes"].setdefault(method, {})[key] = episodes
     results["spo_history"].setdefault(method, {})[key] = [h["success_rate"] for h in history]
+    results.setdefault("spo_health", {}).setdefault(method, {})[key] = {k: [h[k] for h in history] for k in HEALTH}
 
 
 def table(results: dict[str, Any]) -> str:
@@ -189,7 +210,7 @@ def table(results: dict[str, Any]) -> str:
         steps = sum(results["env_steps"].get(method, {}).values()) or "–"
         episodes = sum(results["episodes"].get(method, {}).values()) or "–"
         lines.append(f"| {method} | {100 * e['mean']:.1f}{spread} | {seeds} | {clip} | {steps} | {episodes} |")
-    for name in ("cso_minus_il", "rsft_minus_il"):
+    for name in (f"{a}_minus_{b}" for a, b in DIFFERENCES):
         d = results.get(name)
         if d:
             ci = "" if d["ci95"] is None else f" [95 % CI {100 * d['ci95'][0]:+.1f}, {100 * d['ci95'][1]:+.1f}]"

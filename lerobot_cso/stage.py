@@ -24,6 +24,7 @@ ADDED_SETTINGS: dict[str, Any] = {
     "advantage_weighted": False,
     "state": "full",
     "video_episodes": 0,
+    "encoder_freeze": True,
 }
 
 

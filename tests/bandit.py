@@ -15,7 +15,7 @@ successes, and their later skills do not matter (noise for the objectives).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 
 import torch
 from lerobot.envs.utils import preprocess_observation
@@ -83,6 +83,7 @@ class BanditEngine:
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
+        keep_frames: Collection[int] = (),  # no camera here: nothing to keep
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         jobs = [(g, i, s) for g, s in enumerate(states) for i in range(k)]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 
 import torch
@@ -73,8 +73,12 @@ class ScriptedEngine:
         context = torch.randn(d, 2, 48, generator=g)
         tokens = torch.randint(0, 1000, (d, 8), generator=g)
         logprobs = -torch.rand(d, 8, generator=g)
+        inputs: dict[str, torch.Tensor] = {}
         if self.policy is not None:
             with torch.no_grad():
+                if not self.policy.config.freeze_encoders:  # as the engine: keep the inputs, encode them
+                    inputs = {"observation.state": torch.randn(d, 39, generator=g)}
+                    context = self.policy.encode_context(inputs | {"task": [task_description(task)] * d})
                 tokens, logprobs = self.policy.sample_skills(context, generator=g)
         return Episode(
             task=task,
@@ -91,6 +95,7 @@ class ScriptedEngine:
             contexts=context,
             tokens=tokens,
             logprobs=logprobs,
+            inputs=inputs,
         )
 
     def rollout(
@@ -102,6 +107,7 @@ class ScriptedEngine:
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
+        keep_frames: Collection[int] = (),  # no camera here: nothing to keep
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         self.calls.append(states)

@@ -77,7 +77,9 @@ def test_batch_pads_decisions_and_broadcasts_group_advantages(rsft_policy, tmp_p
     torch.testing.assert_close(loo, torch.tensor([2 / 3, 2 / 3, -2 / 3, -2 / 3]))
     # The rollouts keep contexts on the CPU; the batch goes to the policy's device ("meta" stands in for cuda).
     on_device = spo.Batch.from_groups(groups, "skill", device="meta")
-    assert {t.device.type for t in dataclasses.astuple(on_device)} == {"meta"}
+    tensors = (on_device.contexts, on_device.tokens, on_device.mask, on_device.advantages)
+    assert {t.device.type for t in tensors} == {"meta"}
+    assert on_device.inputs == {} and on_device.tasks == []  # frozen encoders: only the cached contexts
     assert on_device.contexts.shape == batch.contexts.shape and on_device.mask.dtype == torch.bool
 
 
@@ -101,6 +103,25 @@ def test_spo_updates_the_prior_only(rsft_policy, tmp_path, objective):
     logged = [json.loads(line) for line in (cfg.output_dir / "log.jsonl").read_text().splitlines()]
     assert logged == history
     assert (cfg.output_dir / "spo.png").stat().st_size > 1000
+
+
+def test_without_the_freeze_spo_updates_the_encoders_too_from_the_kept_inputs(rsft_policy, tmp_path):
+    """The ablation: contexts recomputed from each decision's kept encoder inputs, so the encoders learn too; with
+    a vanishing lr the recomputed contexts are the rollout's (every ratio 1)."""
+    engines: list[ScriptedEngine] = []
+    cfg = make_cfg(rsft_policy, tmp_path / "unfrozen", encoder_freeze=False)
+    spo.run_spo(cfg, make_engine=engine_factory(engines))
+    assert engines[0].policy is not None and not engines[0].policy.config.freeze_encoders
+    before, _, _ = load_policy(rsft_policy)
+    after, _, _ = load_policy(cfg.output_dir / "pretrained_model")
+    a, b = before.encoders.state_dict(), after.encoders.state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    a, b = before.autoencoder.state_dict(), after.autoencoder.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not after.config.freeze_encoders
+    tiny = make_cfg(rsft_policy, tmp_path / "tiny_lr", encoder_freeze=False, epochs=1, minibatch_trajectories=64)
+    still = spo.run_spo(dataclasses.replace(tiny, lr=1e-12), make_engine=engine_factory(engines))
+    assert all(h["clip_fraction"] == 0.0 and h["ratio_mean"] == pytest.approx(1.0, abs=1e-6) for h in still)
 
 
 def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_path):

@@ -8,8 +8,10 @@ states whose group was uniform: ``state_pool``, ``skip_uniform_for``); then ``ep
 updates of the **skill prior only** with the clipped objective of :mod:`lerobot_cso.cso.objectives` at the
 chosen granularity.
 
-The observation encoders stay frozen: the encoder context of each decision is cached during the rollout
-and the optimizer holds the prior's parameters alone, so the encoders are bit-identical before and after.
+The observation encoders stay frozen (Algorithm 1): the encoder context of each decision is cached during the
+rollout and the optimizer holds the prior's parameters alone, so the encoders are bit-identical before and after.
+With ``encoder_freeze=false`` (the paper's ablation, Table 2) the rollouts keep each decision's encoder inputs
+instead, and the updates recompute the contexts from them, so the encoders learn from the SPO loss too.
 π_old's log-probs are recomputed right after collection by teacher forcing with the same function as the
 updated policy's (dropout off), so the first minibatch has ratio exactly 1. Ratios use the softmax at the
 sampling temperature over all codes (``ratio_top_k: null``, as RIPT), not the top-k-truncated one, so a token
@@ -115,6 +117,8 @@ class SPOConfig(TrainingStageConfig):
     # With a pool: a state whose group was uniform (all successes or all failures) is not drawn again until
     # this many further iterations have passed (RIPT's rollout-stats skipping, applied to both outcomes).
     skip_uniform_for: int = 0
+    # Algorithm 1 keeps the observation encoders frozen during SPO; false updates them with the prior (the ablation).
+    encoder_freeze: bool = True
     seed: int = 0
     wandb: WandBConfig = field(default_factory=WandBConfig)
 
@@ -154,6 +158,10 @@ class Batch:
     tokens: torch.Tensor  # (N, D, n)
     mask: torch.Tensor  # (N, D) bool
     advantages: torch.Tensor  # (N,)
+    # Encoders not frozen: their inputs {key: (N, D, ...)} and each trajectory's task description, from which the
+    # contexts are recomputed with gradients; empty with frozen encoders.
+    inputs: dict[str, torch.Tensor] = field(default_factory=dict)
+    tasks: list[str] = field(default_factory=list)
 
     @classmethod
     def from_groups(cls, groups: list[list[Episode]], objective: str, device: torch.device | str = "cpu") -> "Batch":
@@ -165,25 +173,42 @@ class Batch:
         contexts = first.contexts.new_zeros(len(episodes), d_max, *first.contexts.shape[1:])
         tokens = first.tokens.new_zeros(len(episodes), d_max, first.tokens.shape[-1])
         mask = torch.zeros(len(episodes), d_max, dtype=torch.bool)
+        inputs = {k: v.new_zeros(len(episodes), d_max, *v.shape[1:]) for k, v in first.inputs.items()}
         for i, e in enumerate(episodes):
             d = len(e.tokens)
             contexts[i, :d], tokens[i, :d], mask[i, :d] = e.contexts, e.tokens, True
+            for key, value in e.inputs.items():
+                inputs[key][i, :d] = value
         advantages = advantages_for(objective, rewards).reshape(-1)
-        return cls(*(t.to(device) for t in (contexts, tokens, mask, advantages)))
+        tensors = (t.to(device) for t in (contexts, tokens, mask, advantages))
+        tasks = [e.task_description for e in episodes] if inputs else []
+        return cls(*tensors, {k: v.to(device) for k, v in inputs.items()}, tasks)
+
+
+def decision_contexts(policy: CSOPolicy, batch: Batch, rows: torch.Tensor) -> torch.Tensor:
+    """The contexts (M, P, d) of the valid decisions of trajectories ``rows``: cached, or with encoders that are
+    not frozen, recomputed from their inputs (with gradients when enabled)."""
+    mask = batch.mask[rows]
+    if not batch.inputs:
+        return batch.contexts[rows][mask]
+    per_row = mask.sum(1).tolist()
+    tasks = [task for r, n in zip(rows.tolist(), per_row, strict=True) for task in [batch.tasks[r]] * n]
+    return policy.encode_context({k: v[rows][mask] for k, v in batch.inputs.items()} | {"task": tasks})
 
 
 def padded_logprobs(
-    policy: CSOPolicy,
-    contexts: torch.Tensor,
-    tokens: torch.Tensor,
-    mask: torch.Tensor,
-    temperature: float,
-    top_k: int | None,
+    policy: CSOPolicy, batch: Batch, rows: torch.Tensor, temperature: float, top_k: int | None
 ) -> torch.Tensor:
-    """Teacher-forced per-token log-probs (N, D, n) of the valid decisions; zeros where padded."""
-    out = torch.zeros(tokens.shape, dtype=torch.float32, device=contexts.device)
-    out[mask] = policy.token_logprobs(contexts[mask], tokens[mask], temperature, top_k)
+    """Teacher-forced per-token log-probs (len(rows), D, n) of the valid decisions; zeros where padded."""
+    tokens, mask = batch.tokens[rows], batch.mask[rows]
+    out = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
+    out[mask] = policy.token_logprobs(decision_contexts(policy, batch, rows), tokens[mask], temperature, top_k)
     return out
+
+
+def trained_parameters(policy: CSOPolicy) -> list[torch.nn.Parameter]:
+    """What SPO updates: the prior, and the observation encoders when they are not frozen."""
+    return [p for module in (policy.prior, policy.encoders) for p in module.parameters() if p.requires_grad]
 
 
 def draw_states(
@@ -270,14 +295,13 @@ def update(
     the same minibatches; each back-propagates its rows of a minibatch, normalised by the whole minibatch's
     unit count, and the summed gradients give every replica the same step.
     """
-    policy.eval()  # dropout off: π_old and π are evaluated identically
-    with torch.no_grad():
-        old = padded_logprobs(
-            policy, batch.contexts, batch.tokens, batch.mask, cfg.sampling.temperature, cfg.ratio_top_k
-        )
-    clip = cfg.clip()
-    rows: list[dict[str, float]] = []
+    policy.eval()  # dropout and augmentation off: π_old and π are evaluated identically
     n = len(batch.tokens)
+    with torch.no_grad():
+        old = padded_logprobs(policy, batch, torch.arange(n), cfg.sampling.temperature, cfg.ratio_top_k)
+    clip = cfg.clip()
+    trained = trained_parameters(policy)
+    rows: list[dict[str, float]] = []
     for _ in range(cfg.epochs):
         if rows and cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
             break
@@ -287,22 +311,15 @@ def update(
             optimizer.zero_grad()
             local, weight = {}, 0.0
             if len(mine):
-                new = padded_logprobs(
-                    policy,
-                    batch.contexts[mine],
-                    batch.tokens[mine],
-                    batch.mask[mine],
-                    cfg.sampling.temperature,
-                    cfg.ratio_top_k,
-                )
+                new = padded_logprobs(policy, batch, mine, cfg.sampling.temperature, cfg.ratio_top_k)
                 loss, stats = clipped_surrogate_loss(
                     new, old[mine], batch.mask[mine], batch.advantages[mine], cfg.objective, clip, n_units=units
                 )
                 loss.backward()
                 weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], cfg.objective))
                 local = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0)}
-            distributed.all_reduce_gradients(list(policy.prior.parameters()))
-            grad_norm = torch.nn.utils.clip_grad_norm_(policy.prior.parameters(), cfg.grad_clip_norm)
+            distributed.all_reduce_gradients(trained)
+            grad_norm = torch.nn.utils.clip_grad_norm_(trained, cfg.grad_clip_norm)
             optimizer.step()
             rows.append({**distributed.weighted_mean(local, weight), "grad_norm": float(grad_norm)})
             if cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
@@ -360,8 +377,8 @@ def run_spo(
         return progress["history"]
     source = state.directory / "pretrained_model" if resume else cfg.policy.pretrained_path
     policy, pre, post = load_policy(source, cfg.policy if not resume else None)
-    policy.set_encoders_frozen(True)
-    optimizer = torch.optim.AdamW(policy.prior.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    policy.set_encoders_frozen(cfg.encoder_freeze)
+    optimizer = torch.optim.AdamW(trained_parameters(policy), lr=cfg.lr, weight_decay=cfg.weight_decay)
     if resume:
         optimizer.load_state_dict(torch.load(state.directory / "optimizer.pt"))
     generator = torch.Generator().manual_seed(cfg.seed)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
@@ -73,6 +73,9 @@ class Episode:
     contexts: Tensor  # (D, P, d) float32, encoder output the skill was sampled from
     tokens: Tensor  # (D, n_tokens) int64
     logprobs: Tensor  # (D, n_tokens) float32, log-probs under the distribution sampled from
+    # The encoders' preprocessed inputs of each decision, {key: (D, ...)}: kept only while the policy's encoders
+    # are not frozen (SPO then recomputes the contexts with gradients); empty otherwise.
+    inputs: dict[str, Tensor] = field(default_factory=dict)
 
 
 @dataclass
@@ -157,8 +160,9 @@ class SkillSampler:
         descriptions: list[str],
         sampling: Sampling,
         generator: torch.Generator,
-    ) -> tuple[Tensor, Tensor, Tensor, np.ndarray]:
-        """One batched decision for env ``rows``: contexts, tokens, log-probs (CPU) and action chunks."""
+    ) -> tuple[Tensor, Tensor, Tensor, np.ndarray, dict[str, Tensor]]:
+        """One batched decision for env ``rows``: contexts, tokens, log-probs (CPU), action chunks, and the
+        encoders' preprocessed inputs (CPU; only while the encoders are not frozen)."""
         raw: dict[str, Any] = {"agent_pos": obs["agent_pos"][rows]}
         if "pixels" in obs:
             raw["pixels"] = {cam: image[rows] for cam, image in obs["pixels"].items()}
@@ -176,7 +180,9 @@ class SkillSampler:
         chunk = self.policy.decode_skills(tokens, self.policy.config.n_action_steps)  # executed prefix only
         flat = self.postprocessor(chunk.reshape(-1, chunk.shape[-1]))
         chunks = flat.reshape(chunk.shape).float().cpu().numpy()
-        return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks
+        frozen = getattr(self.policy.config, "freeze_encoders", True)
+        inputs = {} if frozen else {k: v.cpu() for k, v in batch.items() if k in self.policy.config.input_features}
+        return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks, inputs
 
 
 class _PolicyController:
@@ -200,7 +206,9 @@ class _PolicyController:
         self.generator = generator
         self.steps = np.zeros(num_envs, dtype=np.int64)
         self.descriptions: list[str] = [""] * num_envs
-        self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(num_envs)]
+        self.decisions: list[list[tuple[int, Tensor, Tensor, Tensor, dict[str, Tensor]]]] = [
+            [] for _ in range(num_envs)
+        ]
         self.policy_seconds = 0.0
 
     def start(self, slot: int, job: Job) -> None:
@@ -211,12 +219,13 @@ class _PolicyController:
     def act(self, obs: dict[str, Any], active: np.ndarray) -> np.ndarray:
         started = time.perf_counter()
         rows = np.flatnonzero(active).tolist()
-        contexts, tokens, logprobs, chunks = self.sampler.decide(
+        contexts, tokens, logprobs, chunks, inputs = self.sampler.decide(
             obs, rows, self.descriptions, self.sampling, self.generator
         )
         actions = np.zeros((len(active), *chunks.shape[1:]), dtype=np.float32)
         for i, slot in enumerate(rows):
-            self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i]))
+            mine = {key: value[i] for key, value in inputs.items()}
+            self.decisions[slot].append((int(self.steps[slot]), contexts[i], tokens[i], logprobs[i], mine))
             actions[slot] = chunks[i]
             self.steps[slot] += chunks.shape[1]
         self.policy_seconds += time.perf_counter() - started
@@ -225,16 +234,17 @@ class _PolicyController:
     def current_skill(self, slot: int) -> ActiveSkill | None:
         if not self.decisions[slot]:
             return None
-        step, _, tokens, _ = self.decisions[slot][-1]
+        step, _, tokens, _, _ = self.decisions[slot][-1]
         return ActiveSkill(len(self.decisions[slot]) - 1, step, tuple(tokens.tolist()))
 
     def finish(self, slot: int) -> dict[str, Tensor]:
-        steps, contexts, tokens, logprobs = zip(*self.decisions[slot], strict=True)
+        steps, contexts, tokens, logprobs, inputs = zip(*self.decisions[slot], strict=True)
         return {
             "decision_steps": torch.tensor(steps, dtype=torch.int64),
             "contexts": torch.stack(contexts),
             "tokens": torch.stack(tokens),
             "logprobs": torch.stack(logprobs),
+            "inputs": {key: torch.stack([d[key] for d in inputs]) for key in inputs[0]},
         }
 
 
