@@ -51,6 +51,7 @@ from .errors import (
     EmergencyStopError,
     EnableTimeoutError,
     Fault,
+    FeedbackStaleError,
     FirmwareFaultError,
     HighFollowError,
     PartialCommandError,
@@ -80,6 +81,10 @@ ESTOP_RETRY_PERIOD_S = 0.001
 # A joint that stays disabled this close to (or past) its limit is named as why: the firmware does not
 # enable a joint past its limit.
 LIMIT_MARGIN_RAD = math.radians(0.5)
+# Joint feedback that keeps arriving with the very same angles for this long while every command asks
+# for a move of at least FROZEN_MIN_MOVE_RAD counts as frozen (a stuck sender, a replayed capture).
+FROZEN_AFTER_S = 0.25
+FROZEN_MIN_MOVE_RAD = 0.01
 # Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
 LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
 # A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
@@ -275,6 +280,9 @@ class PiperDriver:
         # Foreign resets and high-follow requests newer than this latch motion (set when an enable begins).
         self._session_start = 0.0
         self._reported_faults: tuple[Fault, ...] = ()
+        # While commanding moves: the joint angles last seen, the stamp they were first seen with, and the
+        # stamp of the last command that asked for a move.
+        self._unchanged: tuple[tuple[float, ...], float, float] | None = None
 
     # ------------------------------------------------------------------------------ lifecycle
     @property
@@ -720,6 +728,7 @@ class PiperDriver:
             safe_target(goal, now, bounds, None if steps is None else steps[j])
             for j, (goal, now, bounds) in enumerate(zip(goals, present, self.limits.joints_rad, strict=True))
         )
+        self._refuse_if_frozen(state, safe)
         frames: list[Frame] = [self._mode_frame(), *encode_joint_targets(safe)]
         safe_gripper = None
         if gripper_m is not None:
@@ -727,6 +736,28 @@ class PiperDriver:
             frames.append(self._gripper_frame(safe_gripper, GripperStatusCode.ENABLE))
         self._send(*frames, guard=lambda: self._refuse_motion(own))
         return SentCommand(safe, safe_gripper)
+
+    def _refuse_if_frozen(self, state: ArmState, targets: Sequence[float]) -> None:
+        """Raise ``FeedbackStaleError`` when joint frames keep arriving with the same angles for
+        ``FROZEN_AFTER_S`` of frame time while every command asks for a move (the watchdog only sees frames
+        stop). A pause in commanding that long starts the count again."""
+        present = state.joint_positions_rad
+        if present is None or max(abs(t - p) for t, p in zip(targets, present, strict=True)) < FROZEN_MIN_MOVE_RAD:
+            self._unchanged = None
+            return
+        newest = min(s.timestamp for s in state.joints if s is not None)
+        kept = self._unchanged
+        if kept is None or kept[0] != present or newest - kept[2] > FROZEN_AFTER_S:
+            self._unchanged = (present, newest, newest)
+            return
+        self._unchanged = (present, kept[1], newest)
+        unchanged_for = newest - kept[1]
+        if unchanged_for > FROZEN_AFTER_S:
+            raise FeedbackStaleError(
+                f"PiPER on {self.link.where}: joint feedback keeps arriving with the same angles for "
+                f"{unchanged_for * 1e3:.0f} ms while the arm is commanded to move: frozen feedback, or an arm that "
+                "cannot move; command refused (check the arm and the bus)"
+            )
 
     def _send(self, *frames: Frame, guard: Callable[[], None]) -> None:
         """Send back to back, ``guard`` checked under the send lock before each frame; a guard that stops

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Mapping
 
 import can
@@ -41,9 +41,9 @@ from .state import ArmState, FeedbackCache
 
 log = logging.getLogger(__name__)
 
-# Host -> arm frames worth caching when another host or a linked leader sends them (our own frames
-# are not received back: python-can's receive_own_messages is off): its targets, its mode changes,
-# and its e-stops and resets.
+# Host -> arm frames worth caching when another host or a linked leader sends them: its targets, its
+# mode changes, and its e-stops and resets. Interfaces that deliver our own frames back (udp_multicast
+# loops them to every local listener) are filtered: see ``EchoFilter``.
 OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_FIRMWARE,
     ID_JOINT_CONFIG,
@@ -52,6 +52,9 @@ OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_MOTOR_ENABLE,
 }
 _KEPT_IDS = FEEDBACK_IDS | OBSERVED_CONTROL_IDS
+# Our own frame coming back this soon, with the same ID and bytes, is an echo (not another host).
+ECHO_WINDOW_S = 0.5
+_ECHOES_KEPT = 64
 _IDLE_WAIT_S = 0.05
 _POLL_S = 0.002
 # python-can timestamps on the time.time() clock for socketcan, udp_multicast and virtual; an interface
@@ -148,6 +151,28 @@ class Watchdog:
         ]
 
 
+class EchoFilter:
+    """Recognises our own control frames delivered back to us, so they do not pass for another host's."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._sent: deque[tuple[int, bytes, float]] = deque(maxlen=_ECHOES_KEPT)
+
+    def sent(self, frame_id: int, data: bytes, at: float) -> None:
+        with self._lock:
+            self._sent.append((frame_id, data, at))
+
+    def is_echo(self, frame_id: int, data: bytes, at: float) -> bool:
+        """Whether this received frame is one we sent within ``ECHO_WINDOW_S`` (each echo counts once)."""
+        with self._lock:
+            for entry in self._sent:
+                sent_id, sent_data, sent_at = entry
+                if sent_id == frame_id and sent_data == data and abs(at - sent_at) <= ECHO_WINDOW_S:
+                    self._sent.remove(entry)
+                    return True
+        return False
+
+
 class PiperLink:
     """Reader thread, state cache, watchdog, error frames and thread-safe sends on one CAN bus."""
 
@@ -177,6 +202,7 @@ class PiperLink:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._heard: set[int] = set()
+        self._echoes = EchoFilter()
         self._stale: FeedbackStaleError | None = None
         self._bus_error: CanBusError | None = None
         self.stale_at: float | None = None
@@ -268,6 +294,8 @@ class PiperLink:
         msg = can.Message(
             timestamp=self.clock.time(), arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False
         )
+        if frame.arbitration_id in OBSERVED_CONTROL_IDS:
+            self._echoes.sent(frame.arbitration_id, bytes(frame.data), msg.timestamp)
         try:
             bus.send(msg, timeout=0.05)
         except can.CanError as exc:
@@ -396,7 +424,10 @@ class PiperLink:
             return
         now = self.clock.time()
         arrived = msg.timestamp if abs(now - msg.timestamp) < _PLAUSIBLE_CLOCK_SKEW_S else now
-        self.cache.update(frame_id, bytes(msg.data), arrived)
+        data = bytes(msg.data)
+        if frame_id in OBSERVED_CONTROL_IDS and self._echoes.is_echo(frame_id, data, arrived):
+            return
+        self.cache.update(frame_id, data, arrived)
         self._heard.add(frame_id)
         self.watchdog.seen(frame_id, arrived)
 

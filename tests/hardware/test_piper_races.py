@@ -8,11 +8,13 @@ runs the same races with real threads on the wall clock.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import can
 import pytest
 from piper_can import codec
 from piper_can.driver import PiperDriver
-from piper_can.errors import ArmNotReadyError, EmergencyStopError, PiperConnectionError
+from piper_can.errors import ArmNotReadyError, EmergencyStopError, FeedbackStaleError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
 from piper_rig import Rig, make_rig
 
@@ -339,3 +341,57 @@ def test_disconnect_rest_is_not_fought_by_another_commanding_thread():
         assert outcomes and set(outcomes) == {"refused"}
         assert all(b <= a + 1e-9 for a, b in zip(walk, walk[1:], strict=False)), "targets alternated"
         assert rig.arm.enabled == (False,) * 6 and rig.arm.joints_rad == pytest.approx((0.0,) * 6, abs=0.011)
+
+
+def test_feedback_that_flows_with_frozen_values_stops_commanding():
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        walk_to(rig, POSE)
+        with rig.emulator.locked() as arm:
+            arm.freeze_feedback()  # frames keep coming, the angles never change
+        frozen_at = rig.now()
+        refused_at = None
+        for _ in range(60):
+            try:
+                rig.driver.command(NEXT)
+            except FeedbackStaleError as exc:
+                assert "keeps arriving with the same angles" in str(exc)
+                refused_at = rig.now()
+                break
+            rig.sleep(0.01)
+        assert refused_at is not None and refused_at - frozen_at <= 0.25 + 0.02
+        rig.drain()
+        with pytest.raises(FeedbackStaleError):
+            rig.driver.command(NEXT)
+        assert [m for m in rig.drain() if m.arbitration_id in MOTION_IDS] == []
+        assert rig.driver.link.stale_error is None  # the frame watchdog alone never saw it
+
+
+def test_a_holding_arm_with_constant_feedback_is_not_called_frozen():
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        walk_to(rig, POSE)
+        for _ in range(100):  # commanding where it already is, one second
+            rig.driver.command(POSE)
+            rig.sleep(0.01)
+
+
+def test_our_own_frames_delivered_back_are_not_another_hosts(caplog):
+    # udp_multicast (the emulator across processes) loops our own frames back to us: our reset and our
+    # 0x151 must not pass for a foreign reset or a leader's mode change.
+    with make_rig(EmulatorConfig(profile="light"), connect=False) as rig:
+        options = {"preserve_timestamps": True, "receive_own_messages": True}
+        echoing = PiperDriver(replace(rig.driver.config, bus_options=options), rig.clock)
+        try:
+            echoing.connect()
+            echoing.enable()
+            echoing.reset()
+            echoing.enable()
+            echoing.command(NEXT)
+            state = echoing.state()  # nothing of ours was kept as another host's frame
+            assert (state.foreign_estop, state.leader_mode, state.leader_gripper) == (None, None, None)
+            assert "another host" not in caplog.text
+            send_foreign(rig, 0x150, bytes([0x02]))  # a real foreign reset is still seen
+            echoing.link.poll()
+            with pytest.raises(ArmNotReadyError, match="another host reset the arm"):
+                echoing.command(NEXT)
+        finally:
+            echoing.close()
