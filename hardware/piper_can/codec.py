@@ -24,8 +24,12 @@ ID_MASTER_SLAVE = 0x470
 ID_MOTOR_ENABLE = 0x471
 ID_LIMIT_QUERY = 0x472
 ID_MOTOR_LIMITS = 0x473
+ID_MOTOR_LIMITS_SET = 0x474
 ID_JOINT_CONFIG = 0x475
 ID_INSTRUCTION_RESPONSE = 0x476
+ID_PARAM_QUERY = 0x477
+ID_COLLISION_CONFIG = 0x47A
+ID_COLLISION_LEVELS = 0x47B
 ID_MOTOR_ACCEL_LIMIT = 0x47C
 ID_FIRMWARE = 0x4AF
 ID_ARM_STATUS = 0x2A1
@@ -133,6 +137,10 @@ FLAG_VALID = 0xAE  # 0x475 set-zero / accel-valid / clear-error flags
 ACCEL_NO_CHANGE = 0x7FFF  # 0x475 max acceleration "no change" (firmware >= V1.5-2)
 LIMIT_QUERY_ANGLE_SPEED = 0x01
 LIMIT_QUERY_ACCELERATION = 0x02
+LIMIT_NO_CHANGE = 0x7FFF  # 0x474 angle or speed field "no change"
+PARAM_QUERY_COLLISION = 0x02  # 0x477 byte 0: ask for the collision-protection levels (0x47B)
+END_LOAD_NO_CHANGE = 0x03  # 0x477 byte 4: the end-load setting is not touched
+COLLISION_LEVEL_MAX = 8  # 0x47A/0x47B per joint: 0 = collision detection off, 1..8 = sensitivity
 GRIPPER_EFFORT_MAX_NM = 5.0
 
 # 0x26x byte 5 and 0x2A8 byte 6: bit -> fault name; bit 6 is "enabled" in both.
@@ -283,6 +291,33 @@ class JointConfig:
     clear_error: bool = False
 
 
+@dataclass(frozen=True, slots=True)
+class MotorLimitsSet:
+    """0x474: set a motor's (1..6) flash angle limits and max speed; None leaves a field as it is.
+
+    ``max_speed_raw`` stays raw: its unit is disputed (0.001 or 0.01 rad/s, see 0x473).
+    """
+
+    motor: int
+    max_angle_rad: float | None = None
+    min_angle_rad: float | None = None
+    max_speed_raw: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ParamQuery:
+    """0x477 as a query: ``enquiry`` 0x02 asks for the collision-protection levels (answer 0x47B)."""
+
+    enquiry: int
+
+
+@dataclass(frozen=True, slots=True)
+class CollisionProtectionConfig:
+    """0x47A: set each joint's collision-protection level (0 off, 1..8)."""
+
+    levels: tuple[int, ...]
+
+
 # ------------------------------------------------------------------------- arm -> host messages
 @dataclass(frozen=True, slots=True)
 class ArmStatus:
@@ -397,6 +432,13 @@ class FirmwareChunk:
 
 
 @dataclass(frozen=True, slots=True)
+class CollisionProtectionLevels:
+    """0x47B: each joint's collision-protection level (0 = detection off, 1..8)."""
+
+    levels: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class InstructionResponse:
     """0x476: the arm acknowledges a setting command (``command`` = low byte of its ID, e.g. 0x75)."""
 
@@ -414,6 +456,9 @@ CommandMessage = (
     | LimitQuery
     | FirmwareQuery
     | JointConfig
+    | MotorLimitsSet
+    | ParamQuery
+    | CollisionProtectionConfig
 )
 FeedbackMessage = (
     ArmStatus
@@ -425,6 +470,7 @@ FeedbackMessage = (
     | MotorAccelLimit
     | FirmwareChunk
     | InstructionResponse
+    | CollisionProtectionLevels
 )
 
 
@@ -504,6 +550,36 @@ def encode_joint_config(msg: JointConfig) -> Frame:
         raise CodecError(f"0x475: joint must be 1..7 (7 = all), got {msg.joint}")
     raw = [msg.joint, _flag(msg.set_zero), _flag(msg.accel_valid), msg.max_accel_raw, _flag(msg.clear_error)]
     return Frame(ID_JOINT_CONFIG, _pack("BBBHB", raw, "0x475"))
+
+
+def encode_motor_limits_set(msg: MotorLimitsSet) -> Frame:
+    if not 1 <= msg.motor <= NUM_JOINTS:
+        raise CodecError(f"0x474: motor must be 1..6, got {msg.motor}")
+
+    def angle(rad: float | None, name: str) -> int:
+        return LIMIT_NO_CHANGE if rad is None else rad_to_decideg(rad, name)
+
+    speed = LIMIT_NO_CHANGE if msg.max_speed_raw is None else msg.max_speed_raw
+    raw = [msg.motor, angle(msg.max_angle_rad, "max_angle_rad"), angle(msg.min_angle_rad, "min_angle_rad"), speed]
+    return Frame(ID_MOTOR_LIMITS_SET, _pack("BhhH", raw, "0x474"))
+
+
+def encode_param_query(msg: ParamQuery) -> Frame:
+    return Frame(ID_PARAM_QUERY, _pack("BBBBB", [msg.enquiry, 0, 0, 0, END_LOAD_NO_CHANGE], "0x477"))
+
+
+def _levels(levels: Sequence[int], what: str) -> list[int]:
+    if len(levels) != NUM_JOINTS or not all(0 <= v <= COLLISION_LEVEL_MAX for v in levels):
+        raise CodecError(f"{what}: needs {NUM_JOINTS} levels 0..{COLLISION_LEVEL_MAX}, got {tuple(levels)}")
+    return list(levels)
+
+
+def encode_collision_config(msg: CollisionProtectionConfig) -> Frame:
+    return Frame(ID_COLLISION_CONFIG, _pack("6B", _levels(msg.levels, "0x47A"), "0x47A"))
+
+
+def encode_collision_levels(msg: CollisionProtectionLevels) -> Frame:
+    return Frame(ID_COLLISION_LEVELS, _pack("6B", _levels(msg.levels, "0x47B"), "0x47B"))
 
 
 def encode_arm_status(msg: ArmStatus) -> Frame:
@@ -588,6 +664,10 @@ _ENCODERS: dict[type, Callable] = {
     LimitQuery: encode_limit_query,
     FirmwareQuery: encode_firmware_query,
     JointConfig: encode_joint_config,
+    MotorLimitsSet: encode_motor_limits_set,
+    ParamQuery: encode_param_query,
+    CollisionProtectionConfig: encode_collision_config,
+    CollisionProtectionLevels: encode_collision_levels,
     ArmStatus: encode_arm_status,
     JointFeedback: encode_joint_feedback,
     GripperFeedback: encode_gripper_feedback,
@@ -683,6 +763,27 @@ def _decode_joint_config(_: int, data: bytes) -> JointConfig:
     return JointConfig(joint, zero == FLAG_VALID, accel_valid == FLAG_VALID, accel, clear == FLAG_VALID)
 
 
+def _decode_motor_limits_set(_: int, data: bytes) -> MotorLimitsSet:
+    motor, max_angle, min_angle, speed = _unpack("BhhH", data)
+
+    def angle(raw: int) -> float | None:
+        return None if raw == LIMIT_NO_CHANGE else decideg_to_rad(raw)
+
+    return MotorLimitsSet(motor, angle(max_angle), angle(min_angle), None if speed == LIMIT_NO_CHANGE else speed)
+
+
+def _decode_param_query(_: int, data: bytes) -> ParamQuery:
+    return ParamQuery(data[0])
+
+
+def _decode_collision_config(_: int, data: bytes) -> CollisionProtectionConfig:
+    return CollisionProtectionConfig(tuple(_levels(_unpack("6B", data), "0x47A")))
+
+
+def _decode_collision_levels(_: int, data: bytes) -> CollisionProtectionLevels:
+    return CollisionProtectionLevels(tuple(_levels(_unpack("6B", data), "0x47B")))
+
+
 def _decode_arm_status(_: int, data: bytes) -> ArmStatus:
     return ArmStatus(*_unpack("8B", data))
 
@@ -740,6 +841,9 @@ _COMMAND_DECODERS: dict[int, _Decoder] = {
     ID_LIMIT_QUERY: _decode_limit_query,
     ID_FIRMWARE: _decode_firmware_query,
     ID_JOINT_CONFIG: _decode_joint_config,
+    ID_MOTOR_LIMITS_SET: _decode_motor_limits_set,
+    ID_PARAM_QUERY: _decode_param_query,
+    ID_COLLISION_CONFIG: _decode_collision_config,
 }
 
 _FEEDBACK_DECODERS: dict[int, _Decoder] = {
@@ -752,6 +856,7 @@ _FEEDBACK_DECODERS: dict[int, _Decoder] = {
     ID_MOTOR_ACCEL_LIMIT: _decode_motor_accel_limit,
     ID_FIRMWARE: _decode_firmware_chunk,
     ID_INSTRUCTION_RESPONSE: _decode_instruction_response,
+    ID_COLLISION_LEVELS: _decode_collision_levels,
 }
 
 COMMAND_IDS = frozenset(_COMMAND_DECODERS)

@@ -28,6 +28,7 @@ from .codec import (
     MIT_MODE_POSITION_VELOCITY,
     MOTOR_ALL_JOINTS,
     NUM_JOINTS,
+    PARAM_QUERY_COLLISION,
     ArmStatusCode,
     CtrlMode,
     EmergencyStop,
@@ -40,7 +41,9 @@ from .codec import (
     LimitQuery,
     ModeControl,
     MotorEnable,
+    MotorLimitsSet,
     MoveMode,
+    ParamQuery,
     decode_command,
     encode,
     encode_joint_targets,
@@ -48,6 +51,7 @@ from .codec import (
 )
 from .errors import (
     ArmNotReadyError,
+    CollisionProtectionOffError,
     EmergencyStopError,
     EnableTimeoutError,
     Fault,
@@ -93,6 +97,7 @@ MOTION_MODES = ("position", "high_follow")
 # A watchdog looser than this is no watchdog (200 feedback periods; the emulator over UDP needs 0.1-0.3 s).
 MAX_FEEDBACK_TIMEOUT_S = 1.0
 MAX_JOINT_SPEED_RAD_S = 3.0  # the firmware's own cap (0x474 accepts 0-3 rad/s)
+MAX_JOINT_ACCEL_RAD_S2 = 5.0  # the firmware's own cap (0x475 accepts 0-5 rad/s^2)
 
 
 class DisconnectPolicy(StrEnum):
@@ -108,6 +113,13 @@ class Recovery(StrEnum):
     NONE = "none"  # refuse: raise FirmwareFaultError
     CLEAR_ERRORS = "clear_errors"  # 0x475 clear-error (joints) and 0x159 clear-error (gripper), then enable
     RESET = "reset"  # 0x150 reset (the motors switch off for a moment), then enable
+
+
+class CollisionOff(StrEnum):
+    """What ``connect`` does when the arm reports its collision protection off (level 0) on a joint."""
+
+    WARN = "warn"  # log an error and go on
+    REFUSE = "refuse"  # raise CollisionProtectionOffError
 
 
 class HighFollowExit(StrEnum):
@@ -144,6 +156,12 @@ class DriverSettings:
     rest_gripper_m: float = 0.0
     rest_speed_rad_s: float = 0.5
     rest_timeout_s: float = 10.0
+    # The arm's collision protection (0x47B) read on connect; level 0 (off) on a joint: warn or refuse.
+    collision_off: str = CollisionOff.WARN
+    # The firmware's own per-joint caps, written on connect (they persist in the arm): max joint speed
+    # (0x474, sent in 0.01 rad/s) and max joint acceleration (0x475, 0.01 rad/s^2). None: left as they are.
+    max_joint_speed_rad_s: float | None = None
+    max_joint_accel_rad_s2: float | None = None
 
     def __post_init__(self) -> None:
         self._check_motion()
@@ -159,12 +177,17 @@ class DriverSettings:
         _check_range("reset_settle_s", self.reset_settle_s, RESET_MOTOR_OFF_S, 60.0)
         for name in ("connect_timeout_s", "enable_timeout_s", "rest_timeout_s"):
             _check_range(name, getattr(self, name), 0.0, 600.0, positive=True)
+        if self.max_joint_speed_rad_s is not None:
+            _check_range("max_joint_speed_rad_s", self.max_joint_speed_rad_s, 0.01, MAX_JOINT_SPEED_RAD_S)
+        if self.max_joint_accel_rad_s2 is not None:
+            _check_range("max_joint_accel_rad_s2", self.max_joint_accel_rad_s2, 0.01, MAX_JOINT_ACCEL_RAD_S2)
         if isinstance(self.bitrate, bool) or not isinstance(self.bitrate, int) or self.bitrate <= 0:
             raise ValueError(f"bitrate must be a positive integer, got {self.bitrate!r}")
         for name, kind in (
             ("disconnect_policy", DisconnectPolicy),
             ("recovery", Recovery),
             ("high_follow_exit", HighFollowExit),
+            ("collision_off", CollisionOff),
         ):
             value = getattr(self, name)
             if value not in set(kind):
@@ -308,15 +331,70 @@ class PiperDriver:
             return
         try:
             self.link.send(encode(FirmwareQuery()))
+            self._check_collision_protection()
+            self._write_joint_caps()
             if self.config.read_firmware_limits:
                 self.link.send(*(encode(LimitQuery(m, LIMIT_QUERY_ANGLE_SPEED)) for m in range(1, NUM_JOINTS + 1)))
                 self._apply_firmware_limits()
+                self._confirm_speed_cap()
             status = self.link.state().status
             # Someone put the arm in CAN mode before us: it may be in high-follow (not in any feedback).
             self._may_be_high_follow = status is not None and status.value.ctrl_mode == CtrlMode.CAN
         except BaseException:
             self.link.close()
             raise
+
+    def _check_collision_protection(self) -> None:
+        """Ask for the collision-protection levels (0x477 02 -> 0x47B); level 0 (off) warns or refuses."""
+        asked_at = self.clock.time()
+        self.link.send(encode(ParamQuery(PARAM_QUERY_COLLISION)))
+
+        def answered(s: ArmState) -> bool:
+            return s.collision_levels is not None and s.collision_levels.timestamp > asked_at
+
+        if not self.link.wait_for(answered, self.config.connect_timeout_s):
+            log.warning(
+                "PiPER on %s did not report its collision-protection levels (0x47B): whether it stops on a "
+                "collision is unknown",
+                self.link.where,
+            )
+            return
+        levels = self.link.state().collision_levels.value.levels  # type: ignore[union-attr]
+        off = [f"joint_{j}" for j, level in enumerate(levels, start=1) if level == 0]
+        if not off:
+            return
+        message = (
+            f"PiPER on {self.link.where} reports collision protection OFF (level 0) on {', '.join(off)}: the arm "
+            "will not stop when it hits something; set a level 1..8 (0x47A, vendor tools)"
+        )
+        if self.config.collision_off == CollisionOff.REFUSE:
+            raise CollisionProtectionOffError(message + ", or set collision_off=warn")
+        log.error("%s", message)
+
+    def _write_joint_caps(self) -> None:
+        """Write the firmware's own joint speed / acceleration caps, if configured (they persist in the arm).
+
+        The speed unit of 0x474 is disputed (0.01 or 0.001 rad/s): it is sent in 0.01 rad/s, so if the
+        firmware reads 0.001 the arm moves ten times slower than asked, never faster."""
+        cfg = self.config
+        if cfg.max_joint_speed_rad_s is not None:
+            raw = round(cfg.max_joint_speed_rad_s * 100)
+            self.link.send(*(encode(MotorLimitsSet(m, max_speed_raw=raw)) for m in range(1, NUM_JOINTS + 1)))
+            log.warning("PiPER on %s: joint speed capped at %.2f rad/s (0x474)", self.link.where, raw / 100)
+        if cfg.max_joint_accel_rad_s2 is not None:
+            raw = round(cfg.max_joint_accel_rad_s2 * 100)
+            self.link.send(encode(JointConfig(NUM_JOINTS + 1, accel_valid=True, max_accel_raw=raw)))
+            log.warning("PiPER on %s: joint acceleration capped at %.2f rad/s^2 (0x475)", self.link.where, raw / 100)
+
+    def _confirm_speed_cap(self) -> None:
+        """Log an error for every motor whose 0x473 reply does not show the speed cap we wrote."""
+        if self.config.max_joint_speed_rad_s is None:
+            return
+        raw = round(self.config.max_joint_speed_rad_s * 100)
+        limits = self.link.state().motor_limits
+        ignored = [f"joint_{m}" for m in range(1, NUM_JOINTS + 1) if m in limits and limits[m].max_speed_raw != raw]
+        if ignored:
+            log.error("PiPER on %s did not take the joint speed cap (0x474) on %s", self.link.where, ", ".join(ignored))
 
     def _apply_firmware_limits(self) -> None:
         got_all = self.link.wait_for(lambda s: len(s.motor_limits) >= NUM_JOINTS, self.config.connect_timeout_s)

@@ -33,6 +33,10 @@ class HighFollowError(PiperError):
     """The arm may be in high-follow (0xAD), which this firmware leaves only after a reset."""
 
 
+class CollisionProtectionOffError(PiperError):
+    """The arm reports its collision protection off (level 0) and the driver was told to refuse that."""
+
+
 class CanBusError(PiperConnectionError):
     """The CAN controller reported bus-off (or the bus failed): nothing reaches the arm."""
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from .codec import (
+    ACCEL_NO_CHANGE,
     DLC,
     ENABLED_BIT,
     FEEDBACK_IDS,
@@ -36,9 +37,12 @@ from .codec import (
     MOTOR_ALL,
     MOTOR_ALL_JOINTS,
     NUM_JOINTS,
+    PARAM_QUERY_COLLISION,
     ArmStatus,
     ArmStatusCode,
     CodecError,
+    CollisionProtectionConfig,
+    CollisionProtectionLevels,
     CtrlMode,
     EmergencyStop,
     EStopAction,
@@ -60,7 +64,9 @@ from .codec import (
     MotorAccelLimit,
     MotorEnable,
     MotorLimits,
+    MotorLimitsSet,
     MoveMode,
+    ParamQuery,
     decode_command,
     encode,
     encode_joint_positions,
@@ -134,6 +140,8 @@ class EmulatorConfig:
     start_enabled: bool = False  # enabled in CAN mode and high-follow, as after a hardware-linked leader
     # A real arm refuses to enable a joint that sits past its limit (e.g. J2 slightly below 0 rad).
     refuse_enable_past_limit: bool = True
+    # Collision-protection level per joint as stored in flash (0 = detection off, 1..8); 0x47A changes it.
+    collision_levels: tuple[int, ...] = (1,) * NUM_JOINTS
     strict: bool = False  # log every ignored frame
     firmware_text: str = "H-V1.2-1 S-V1.8-2 P-V1.0.0 PiPER emulator"
     firmware_frames: int = 11
@@ -198,6 +206,11 @@ class PiperFirmware:
         self.leader_pose: tuple[tuple[float, ...], float] | None = None
         self._frozen: list[Frame] | None = None
         self._pending_role: str | None = None
+        # Flash settings (kept over power cycles): 0x474 joint speed caps (the model reads 0x474/0x473 speeds
+        # in 0.01 rad/s), 0x475 acceleration caps (reported, not modelled), 0x47A collision levels.
+        self.joint_max_speed_rad_s = [self.config.max_speed_rad_s] * NUM_JOINTS
+        self.joint_max_accel_rad_s2 = [5.0] * NUM_JOINTS
+        self.collision_levels = tuple(self.config.collision_levels)
         self.power_cycle()
 
     # ------------------------------------------------------------------------- ground truth
@@ -348,6 +361,13 @@ class PiperFirmware:
                 self._on_master_slave(command)
             case JointConfig():
                 replies = self._on_joint_config(command, frame)
+            case MotorLimitsSet():
+                replies = self._on_limits_set(command, frame)
+            case ParamQuery():
+                replies = self._on_param_query(command, frame)
+            case CollisionProtectionConfig():
+                self.collision_levels = command.levels
+                replies = [encode(InstructionResponse(0x7A))]
         return self._emit([f for f in replies if f.arbitration_id not in self.drop_ids])
 
     def _ignore(self, reason: str, frame: Frame) -> list[Frame]:
@@ -473,12 +493,29 @@ class PiperFirmware:
         return lower - _LIMIT_TOLERANCE_RAD <= position <= upper + _LIMIT_TOLERANCE_RAD
 
     def _on_joint_config(self, cmd: JointConfig, frame: Frame) -> list[Frame]:
-        if cmd.set_zero or cmd.accel_valid:
+        if cmd.set_zero:
             self._ignore("unsupported setting", frame)
             return []
+        if cmd.accel_valid and cmd.max_accel_raw != ACCEL_NO_CHANGE:
+            for j in range(1, NUM_JOINTS + 1) if cmd.joint == NUM_JOINTS + 1 else (cmd.joint,):
+                self.joint_max_accel_rad_s2[j - 1] = cmd.max_accel_raw / 100
         if cmd.clear_error:
             self.clear_faults(range(1, NUM_JOINTS + 1) if cmd.joint == NUM_JOINTS + 1 else (cmd.joint,), False)
         return [encode(InstructionResponse(0x75))]
+
+    def _on_limits_set(self, cmd: MotorLimitsSet, frame: Frame) -> list[Frame]:
+        if cmd.max_angle_rad is not None or cmd.min_angle_rad is not None:
+            self._ignore("unsupported setting", frame)  # the flash angle limits stay EmulatorConfig.limits
+            return []
+        if cmd.max_speed_raw is not None:
+            self.joint_max_speed_rad_s[cmd.motor - 1] = cmd.max_speed_raw / 100
+        return [encode(InstructionResponse(0x74))]
+
+    def _on_param_query(self, cmd: ParamQuery, frame: Frame) -> list[Frame]:
+        if cmd.enquiry != PARAM_QUERY_COLLISION:
+            self._ignore("unsupported setting", frame)
+            return []
+        return [encode(CollisionProtectionLevels(self.collision_levels))]
 
     def _limit_replies(self, cmd: LimitQuery) -> list[Frame]:
         motors = range(1, NUM_JOINTS + 1) if cmd.motor in (0, MOTOR_ALL) else (cmd.motor,)
@@ -488,10 +525,10 @@ class PiperFirmware:
                 continue
             if cmd.kind == 0x01:
                 lower, upper = self.config.limits.joints_rad[m - 1]
-                max_speed_raw = round(self.config.max_speed_rad_s * 100)
+                max_speed_raw = round(self.joint_max_speed_rad_s[m - 1] * 100)
                 replies.append(encode(MotorLimits(m, upper, lower, max_speed_raw)))
             elif cmd.kind == 0x02:
-                replies.append(encode(MotorAccelLimit(m, 5.0)))
+                replies.append(encode(MotorAccelLimit(m, self.joint_max_accel_rad_s2[m - 1])))
         return replies
 
     def _firmware_replies(self) -> list[Frame]:
@@ -537,8 +574,9 @@ class PiperFirmware:
     def _move_joints(self, dt: float) -> None:
         cfg = self.config
         high_follow = self.mit_mode == MIT_MODE_HIGH_FOLLOW
-        speed = cfg.max_speed_rad_s * (1.0 if high_follow else self.speed_percent / 100)
+        speed_all = cfg.max_speed_rad_s * (1.0 if high_follow else self.speed_percent / 100)
         for j, joint in enumerate(self._joints):
+            speed = min(speed_all, self.joint_max_speed_rad_s[j])
             before = joint.position
             if self._estop:
                 joint.position = _toward(joint.position, cfg.rest_pose_rad[j], cfg.estop_sag_rad_s * dt)

@@ -29,11 +29,14 @@ from .codec import (
     COMMAND_IDS,
     DLC,
     FEEDBACK_IDS,
+    ID_COLLISION_CONFIG,
     ID_FIRMWARE,
     ID_JOINT_CONFIG,
     ID_LIMIT_QUERY,
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
+    ID_MOTOR_LIMITS_SET,
+    ID_PARAM_QUERY,
     Frame,
 )
 from .errors import CanBusError, FeedbackStaleError, PartialCommandError, PiperConnectionError
@@ -50,6 +53,9 @@ OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_LIMIT_QUERY,
     ID_MASTER_SLAVE,
     ID_MOTOR_ENABLE,
+    ID_MOTOR_LIMITS_SET,
+    ID_PARAM_QUERY,
+    ID_COLLISION_CONFIG,
 }
 _KEPT_IDS = FEEDBACK_IDS | OBSERVED_CONTROL_IDS
 # Our own frame coming back this soon, with the same ID and bytes, is an echo (not another host).

@@ -11,6 +11,7 @@ from .codec import (
     NUM_JOINTS,
     ArmStatus,
     ArmStatusCode,
+    CollisionProtectionLevels,
     EmergencyStop,
     GripperCommand,
     GripperFeedback,
@@ -60,6 +61,7 @@ class ArmState:
     leader_gripper: Stamped[GripperCommand] | None
     leader_mode: Stamped[ModeControl] | None
     foreign_estop: Stamped[EmergencyStop] | None = None  # another host's last 0x150 (stop or reset)
+    collision_levels: Stamped[CollisionProtectionLevels] | None = None  # 0x47B, the answer to 0x477 02
     motor_limits: dict[int, MotorLimits] = field(default_factory=dict)
     firmware_version: str | None = None
     rates_hz: dict[int, float] = field(default_factory=dict)
@@ -200,7 +202,14 @@ class FeedbackCache:
                     high[j - 1] = Stamped(message, timestamp)
                 case LowSpeedInfo(joint=j):
                     low[j - 1] = Stamped(message, timestamp)
-                case GripperFeedback() | ArmStatus() | GripperCommand() | ModeControl() | EmergencyStop():
+                case (
+                    GripperFeedback()
+                    | ArmStatus()
+                    | GripperCommand()
+                    | ModeControl()
+                    | EmergencyStop()
+                    | CollisionProtectionLevels()
+                ):
                     found[type(message)] = Stamped(message, timestamp)
         return ArmState(
             joints=tuple(joints),
@@ -212,6 +221,7 @@ class FeedbackCache:
             leader_gripper=found.get(GripperCommand),
             leader_mode=found.get(ModeControl),
             foreign_estop=found.get(EmergencyStop),
+            collision_levels=found.get(CollisionProtectionLevels),
             motor_limits=limits,
             firmware_version=parse_firmware_version(firmware_text),
             rates_hz=rates,

@@ -268,3 +268,25 @@ def test_joint_config_flags_must_be_0xae_or_zero_and_versions_parse():
         encode(codec.JointConfig(0))
     assert codec.firmware_release("S-V1.8-5") == (1, 8, 5) and codec.firmware_release("S-V1.8-2") < (1, 8, 5)
     assert codec.firmware_release(None) is None and codec.firmware_release("H-V1.2-1") is None
+
+
+def test_the_collision_and_joint_cap_frames_match_the_vendor_layout():
+    # piper_sdk 0.6.2: ArmParamEnquiryAndConfig(0x02, 0, 0, 0, 0x03), CrashProtectionConfig(1..6),
+    # MotorMaxSpdSet(motor, 0x7FFF, 0x7FFF, speed) byte layouts.
+    assert encode(codec.ParamQuery(codec.PARAM_QUERY_COLLISION)).data == bytes([2, 0, 0, 0, 3, 0, 0, 0])
+    assert encode(codec.CollisionProtectionConfig((1, 2, 3, 4, 5, 6))) == Frame(0x47A, bytes([1, 2, 3, 4, 5, 6, 0, 0]))
+    assert encode(codec.MotorLimitsSet(3, max_speed_raw=60)) == Frame(0x474, bytes.fromhex("037fff7fff003c00"))
+    samples = [
+        (codec.MotorLimitsSet(2, math.radians(90.0), math.radians(-90.0), 150), decode_command),
+        (codec.MotorLimitsSet(6), decode_command),
+        (codec.ParamQuery(0x02), decode_command),
+        (codec.CollisionProtectionConfig((0, 1, 2, 3, 4, 8)), decode_command),
+        (codec.CollisionProtectionLevels((8, 7, 6, 5, 4, 0)), decode_feedback),
+    ]
+    for message, decoder in samples:
+        frame = encode(message)
+        assert decoder(frame.arbitration_id, frame.data) == message
+    with pytest.raises(CodecError, match="0x47A: needs 6 levels 0..8"):
+        encode(codec.CollisionProtectionConfig((9, 0, 0, 0, 0, 0)))
+    with pytest.raises(CodecError, match="0x474: motor must be 1..6"):
+        encode(codec.MotorLimitsSet(7))

@@ -14,7 +14,13 @@ import can
 import pytest
 from piper_can import codec
 from piper_can.driver import PiperDriver
-from piper_can.errors import ArmNotReadyError, EmergencyStopError, FeedbackStaleError, PiperConnectionError
+from piper_can.errors import (
+    ArmNotReadyError,
+    CollisionProtectionOffError,
+    EmergencyStopError,
+    FeedbackStaleError,
+    PiperConnectionError,
+)
 from piper_can.firmware import EmulatorConfig
 from piper_rig import Rig, make_rig
 
@@ -395,3 +401,31 @@ def test_our_own_frames_delivered_back_are_not_another_hosts(caplog):
                 echoing.command(NEXT)
         finally:
             echoing.close()
+
+
+# ------------------------------------------------------------------ 7. the firmware's own safety settings
+def test_collision_protection_off_is_refused_or_warned_about_on_connect(caplog):
+    off = EmulatorConfig(profile="light", collision_levels=(1, 0, 1, 1, 1, 1))
+    with make_rig(off, connect=False, collision_off="refuse") as rig:
+        rig.drain()
+        with pytest.raises(CollisionProtectionOffError, match=r"collision protection OFF \(level 0\) on joint_2"):
+            rig.driver.connect()
+        queries = [m for m in rig.drain() if m.arbitration_id == 0x477]
+        assert [bytes(m.data) for m in queries] == [bytes([0x02, 0, 0, 0, 0x03, 0, 0, 0])]  # piper_sdk's query
+        assert not rig.driver.is_connected
+    with make_rig(off) as rig:  # default: warn loudly, go on
+        assert "collision protection OFF (level 0) on joint_2" in caplog.text
+        walk_to(rig, POSE)
+    caplog.clear()
+    with make_rig(EmulatorConfig(profile="light")):
+        assert "collision" not in caplog.text
+
+
+def test_the_firmwares_joint_speed_and_acceleration_caps_are_settings():
+    with make_rig(
+        EmulatorConfig(profile="light"), speed_percent=100, max_joint_speed_rad_s=0.6, max_joint_accel_rad_s2=2.5
+    ) as rig:
+        assert rig.arm.joint_max_speed_rad_s == [0.6] * 6 and rig.arm.joint_max_accel_rad_s2 == [2.5] * 6
+        assert all(limit.max_speed_raw == 60 for limit in rig.driver.state().motor_limits.values())
+        walk_to(rig, POSE)
+        assert max_speed_of_a_step(rig, (POSE[0] + 0.2, *POSE[1:])) <= 0.6 + 1e-6  # not 3 rad/s at 100 %
