@@ -631,7 +631,7 @@ class PiperDriver:
         state = self.link.state()
         sent_at, enabled_before = self._reset_sent_at, self._enabled_before_reset
         self._reset_sent_at = None
-        foreign = self._foreign_reset_since(now - settle)
+        foreign = self._foreign_reset_since(max(now - settle, self._session_start))  # not one already waited out
         if foreign is not None and (sent_at is None or foreign > sent_at):
             log.warning(
                 "PiPER on %s: another host reset the arm %.3f s ago; waiting out its delayed motor-off",
