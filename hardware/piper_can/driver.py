@@ -82,9 +82,9 @@ RESET_MOTOR_OFF_S = 0.73
 # An e-stop frame the bus refuses (a full TX queue) is retried every period until this much time passed.
 ESTOP_RETRY_S = 0.1
 ESTOP_RETRY_PERIOD_S = 0.001
-# A joint that stays disabled this close to (or past) its limit is named as why: the firmware does not
-# enable a joint past its limit.
-LIMIT_MARGIN_RAD = math.radians(0.5)
+# A joint that stays disabled further than this past its limit is named as why (the firmware does not
+# enable a joint past its limit); the rest pose sits exactly on J2's and J3's limits, which is fine.
+PAST_LIMIT_RAD = math.radians(0.01)
 # Joint feedback that keeps arriving with the very same angles for this long while every command asks
 # for a move of at least FROZEN_MIN_MOVE_RAD counts as frozen (a stuck sender, a replayed capture).
 FROZEN_AFTER_S = 0.25
@@ -559,7 +559,7 @@ class PiperDriver:
         at_limit = [
             f"joint_{j} at {angle:.4f} rad, limits [{lower:.4f}, {upper:.4f}]"
             for j, (angle, (lower, upper)) in enumerate(zip(angles, self.limits.joints_rad, strict=False), start=1)
-            if f"joint_{j}" in missing and not lower + LIMIT_MARGIN_RAD < angle < upper - LIMIT_MARGIN_RAD
+            if f"joint_{j}" in missing and not lower - PAST_LIMIT_RAD <= angle <= upper + PAST_LIMIT_RAD
         ]
         if at_limit:
             return message + (

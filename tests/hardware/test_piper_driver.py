@@ -665,3 +665,11 @@ def test_a_lost_mode_frame_is_resent_until_the_status_confirms_it():
         assert lost and rig.arm.ctrl_mode == codec.CtrlMode.CAN
         modes = [m.timestamp for m in rig.drain() if m.arbitration_id == 0x151]
         assert len(modes) == 1 and modes[0] - lost[0].timestamp == pytest.approx(0.05, abs=0.0025)
+
+
+def test_an_arm_at_rest_on_its_limits_that_does_not_enable_is_not_blamed_on_the_limits():
+    # The rest pose sits exactly on J2's and J3's limits: a withheld enable there is the e-stop or the power.
+    with make_rig(EmulatorConfig(enable_latency_s=60.0), enable=False, enable_timeout_s=0.3) as rig:
+        with pytest.raises(EnableTimeoutError, match="check the e-stop button and the arm's power") as err:
+            rig.driver.enable()
+        assert "past its limit" not in str(err.value)
