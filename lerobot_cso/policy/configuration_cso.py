@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from functools import partial
@@ -37,8 +38,18 @@ class TwoPhaseCosineSchedulerConfig(LRSchedulerConfig):
     num_autoencoder_steps: int = 0
     min_lr_ratio: float = 0.1
     num_warmup_steps: int = 0
+    # Whether the run starts from an untrained policy (``--policy.type=cso``, no ``--policy.path``): then a run
+    # that ends within the autoencoder phase never trains the prior, which ``build`` warns about.
+    from_scratch: bool = False
 
     def build(self, optimizer: Optimizer, num_training_steps: int) -> LambdaLR:
+        if self.from_scratch and num_training_steps <= self.num_autoencoder_steps:
+            logging.warning(
+                f"--steps={num_training_steps} <= --policy.n_autoencoder_steps={self.num_autoencoder_steps}: this "
+                "run trains only the skill autoencoder, never the skill prior; raise --steps above "
+                f"{self.num_autoencoder_steps} (or lower --policy.n_autoencoder_steps), unless a later run trains "
+                "the prior from its checkpoint with --policy.path"
+            )
         boundary = min(self.num_autoencoder_steps, num_training_steps)
 
         def lr_lambda(step: int) -> float:
@@ -198,6 +209,7 @@ class CSOConfig(PreTrainedConfig):
             num_autoencoder_steps=self.n_autoencoder_steps,
             min_lr_ratio=self.optimizer_min_lr / self.optimizer_lr,
             num_warmup_steps=self.scheduler_warmup_steps,
+            from_scratch=self.pretrained_path is None,
         )
 
     def validate_features(self) -> None:
