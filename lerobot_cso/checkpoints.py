@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,10 +11,13 @@ from typing import Any
 from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import make_pre_post_processors
+from safetensors import SafetensorError, safe_open
 
 from lerobot_cso.durable import replace_dir
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOPolicy
+
+SAVED_FILES = ("model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json")  # beside config.json
 
 
 def policy_config_from_cli(field: str = "policy") -> PreTrainedConfig | None:
@@ -21,12 +25,35 @@ def policy_config_from_cli(field: str = "policy") -> PreTrainedConfig | None:
     path = parser.get_path_arg(field)
     if not path:
         return None
-    if not (Path(path) / "config.json").is_file():
-        raise UsageError(f"--{field}.path={path} is not a saved policy (no config.json there)")
+    check_saved_policy(Path(path), f"--{field}.path")
     overrides = parser.get_yaml_overrides(field) + (parser.get_cli_overrides(field) or [])
     config = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides)
     config.pretrained_path = Path(path)
     return config
+
+
+def check_saved_policy(path: Path, flag: str) -> None:
+    """Refuse a directory that is not a whole saved cso policy (config, weights, processors), naming the file at
+    fault: missing, damaged (a truncated or empty file) or another policy type's."""
+    config_file = path / "config.json"
+    if not config_file.is_file():
+        raise UsageError(f"{flag}={path} is not a saved policy (no config.json there)")
+    try:
+        kind = json.loads(config_file.read_text()).get("type")
+    except (ValueError, AttributeError) as e:  # not JSON, or not a JSON object
+        raise UsageError(f"{config_file} is damaged ({e or 'not a JSON object'})") from None
+    if kind != "cso":
+        raise UsageError(
+            f"{flag}={path} is a '{kind}' policy; lerobot-cso post-trains cso policies (--policy.type=cso)"
+        )
+    for name in SAVED_FILES:
+        if not (path / name).is_file():
+            raise UsageError(f"{path / name} is missing: {flag} must be a policy saved with its weights and processors")
+    try:
+        with safe_open(path / "model.safetensors", "pt"):  # reads and checks the header against the file's size
+            pass
+    except SafetensorError as e:
+        raise UsageError(f"{path / 'model.safetensors'} is damaged ({e})") from None
 
 
 @dataclass
