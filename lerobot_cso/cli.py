@@ -1,35 +1,38 @@
 """``lerobot-cso <subcommand> [--a.b=c ...] [--config_path=configs/<file>.yaml]``.
 
 Each subcommand is a function decorated with ``lerobot.configs.parser.wrap()`` over a draccus dataclass,
-so it is configured exactly like LeRobot's own scripts. Registering one is one line in ``SUBCOMMANDS``.
+so it is configured exactly like LeRobot's own scripts. Registering one is one line in ``SUBCOMMANDS``; its module
+is imported only when it runs (torch and LeRobot take seconds), so ``lerobot-cso --help`` and a misspelt
+subcommand answer at once.
 Bad input raises :class:`~lerobot_cso.errors.UsageError`: one ``error: ...`` line on stderr, exit code 2 — also
-what the argument parser rejects (an unknown ``--robot.type``, a misspelt option), without its usage dump.
+what the argument parser rejects (an unknown ``--robot.type``, a misspelt option, a value of the wrong type),
+without its usage dump. Ctrl-C ends the command with one line saying where it stopped, exit code 130; the work it
+finished is saved, and the same command resumes from it.
 """
 
+import importlib
 import sys
 from collections.abc import Callable
 
-from lerobot.utils.import_utils import register_third_party_plugins
+from lerobot_cso.errors import UsageError, interrupted_where, parse_errors_as_usage_errors
 
-from lerobot_cso.cso.rsft import rsft_main
-from lerobot_cso.cso.spo import spo_main
-from lerobot_cso.demos import demos_main
-from lerobot_cso.errors import UsageError, parse_errors_as_usage_errors
-from lerobot_cso.evaluation import eval_main
-from lerobot_cso.pipeline import pipeline_main
-
-SUBCOMMANDS: dict[str, Callable[[], object]] = {
-    "demos": demos_main,
-    "eval": eval_main,
-    "rsft": rsft_main,
-    "spo": spo_main,
-    "pipeline": pipeline_main,
+SUBCOMMANDS: dict[str, str] = {  # name -> "module:function"
+    "demos": "lerobot_cso.demos:demos_main",
+    "eval": "lerobot_cso.evaluation:eval_main",
+    "rsft": "lerobot_cso.cso.rsft:rsft_main",
+    "spo": "lerobot_cso.cso.spo:spo_main",
+    "pipeline": "lerobot_cso.pipeline:pipeline_main",
 }
 
 
 def _usage() -> str:
     names = ", ".join(SUBCOMMANDS)
     return f"usage: lerobot-cso {{{names}}} [--key=value ...] [--config_path=FILE.yaml]  (--help per subcommand)"
+
+
+def _command(name: str) -> Callable[[], object]:
+    module, function = SUBCOMMANDS[name].split(":")
+    return getattr(importlib.import_module(module), function)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,18 +42,27 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage(), file=sys.stdout if args else sys.stderr)
         return 0 if args else 2
     name, rest = args[0], args[1:]
-    command = SUBCOMMANDS.get(name)
-    if command is None:
+    if name not in SUBCOMMANDS:
         print(f"error: unknown subcommand '{name}'; choose one of: {', '.join(SUBCOMMANDS)}", file=sys.stderr)
         return 2
+    from lerobot.utils.import_utils import register_third_party_plugins
+
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
     register_third_party_plugins()
     try:
         with parse_errors_as_usage_errors():
-            command()
+            _command(name)()
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:
+        where = interrupted_where(e)
+        print(
+            f"interrupted: lerobot-cso {name} stopped{f' in {where}' if where else ''}; the work it finished is "
+            "saved, and the same command resumes from it",
+            file=sys.stderr,
+        )
+        return 130
     return 0
 
 

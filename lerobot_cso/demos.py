@@ -44,13 +44,13 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
-from lerobot_cso.durable import EpisodeJournal, replace_dir, restore_interrupted_replace, write_json
+from lerobot_cso.durable import EpisodeJournal, output_lock, replace_dir, restore_interrupted_replace, write_json
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.config import parse_cameras
 from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 from lerobot_cso.envs.metaworld_env import select_state
 from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.errors import UsageError, check_number
+from lerobot_cso.errors import UsageError, check_number, check_output_dir
 from lerobot_cso.rollout.world import MetaWorld, SimWorld, world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
 
@@ -102,6 +102,7 @@ class DemosConfig:
         """Check every setting (and the given dataset); returns the resolved task list. Raises ``UsageError``."""
         if self.dataset_root is not None:
             return check_dataset(self)[0]
+        check_output_dir(self.output_dir)
         world = world_for(self.tasks)
         tasks = _resolve(world, self.tasks)
         if not isinstance(world, MetaWorld):
@@ -414,7 +415,8 @@ def demos_main(cfg: DemosConfig) -> None:
         episodes, frames = summary["total_episodes"], summary["total_frames"]
         print(f"{cfg.dataset_root}: {episodes} episodes, {frames} frames; usable for --tasks={cfg.tasks}")
         return
-    summary = generate_demos(cfg)
+    with output_lock(cfg.output_dir):
+        summary = generate_demos(cfg)
     print(f"{summary['output_dir']}: {summary['total_episodes']} episodes ({summary['new_episodes']} new)")
     for task, info in summary["tasks"].items():
         print(f"  {task:32s} {info['episodes']:5d} episodes, expert success {info['expert_success_rate']:.0%}")

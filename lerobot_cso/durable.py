@@ -8,14 +8,21 @@
   records (demos, R-SFT collection, real-arm rollouts). A journal made with other settings is refused.
 * :class:`ResumableState`: a directory (checkpoint files plus ``progress.json``) replaced as a whole after
   each unit of work (an SPO iteration, an R-SFT epoch).
+* :func:`output_lock`: one writer per output directory (a second run is refused, the first one named); the lock
+  dies with its process, so ``kill -9`` leaves nothing to clean up.
 """
 
 from __future__ import annotations
 
+import datetime as dt
+import fcntl
 import json
 import os
 import shutil
-from collections.abc import Callable
+import sys
+import zipfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -54,8 +61,15 @@ def write_json(path: Path, data: Any) -> None:
 
 
 def read_json(path: Path) -> Any | None:
-    """The JSON in ``path``, or None when there is no such file."""
-    return json.loads(path.read_text()) if path.is_file() else None
+    """The JSON in ``path``, or None when there is no such file; ``UsageError`` naming a damaged one."""
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except ValueError as e:  # not JSON (truncated, overwritten), or not UTF-8
+        raise UsageError(
+            f"{path} is damaged ({e}); delete it, or the output dir holding it, to redo its work"
+        ) from None
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
@@ -114,8 +128,11 @@ class EpisodeJournal:
 
     @staticmethod
     def load(path: Path) -> dict[str, np.ndarray]:
-        with np.load(path) as data:
-            return dict(data)
+        try:
+            with np.load(path) as data:
+                return dict(data)
+        except (OSError, ValueError, zipfile.BadZipFile) as e:
+            raise UsageError(f"{path} is damaged ({e}); delete it and the run redoes that episode") from None
 
     def save_record(self, group: str, name: str, record: dict[str, Any]) -> None:
         directory = self.root / "records" / group
@@ -124,7 +141,7 @@ class EpisodeJournal:
 
     def records(self, group: str) -> dict[str, dict[str, Any]]:
         """name → record of every record of ``group``."""
-        return {p.stem: json.loads(p.read_text()) for p in (self.root / "records" / group).glob("*.json")}
+        return {p.stem: read_json(p) for p in (self.root / "records" / group).glob("*.json")}
 
 
 class ResumableState:
@@ -161,3 +178,27 @@ class ResumableState:
             write_json(tmp / PROGRESS_FILE, progress)
             replace_dir(tmp, self.directory)
         barrier()
+
+
+@contextmanager
+def output_lock(directory: Path) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``directory`` while the block runs; raises ``UsageError`` naming the holder (pid,
+    command, since when) when another process holds it. The lock file stays; the lock is released with the process."""
+    directory = directory.absolute()
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(directory.with_name(f".{directory.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "a process"
+            raise UsageError(
+                f"{directory} is being written by another run ({holder}); wait for it to end or choose another "
+                "output dir"
+            ) from None
+        os.ftruncate(fd, 0)
+        command = " ".join([os.path.basename(sys.argv[0]), *sys.argv[1:]])
+        os.pwrite(fd, f"pid {os.getpid()}: {command}, since {dt.datetime.now():%Y-%m-%d %H:%M:%S}".encode(), 0)
+        yield
+    finally:
+        os.close(fd)

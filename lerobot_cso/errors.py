@@ -1,12 +1,17 @@
 """Bad user input: ``UsageError``, whose message ``lerobot-cso`` prints as one line before exiting non-zero,
-draccus's parse errors turned into it, and :func:`check_number`, the one check of a numeric setting."""
+draccus's parse errors turned into it, and :func:`check_number`, the one check of a numeric setting; and
+:func:`check_output_dir`; and :func:`interruptible`, which names the work a Ctrl-C stopped for that line."""
 
 import math
 import operator
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NoReturn
+from pathlib import Path
+from typing import Any, NoReturn
 
+import draccus
+from draccus.utils import ParsingError
 from draccus.wrappers.suppressing_argparse import SuppressingArgumentParser
 
 COMPARISONS = {">": operator.gt, ">=": operator.ge, "<": operator.lt, "<=": operator.le}
@@ -18,17 +23,36 @@ class UsageError(Exception):
 
 @contextmanager
 def parse_errors_as_usage_errors() -> Iterator[None]:
-    """Make draccus's parser raise its error as a ``UsageError`` instead of printing every option first."""
+    """Make draccus's parser raise its error as a ``UsageError`` instead of printing every option first, and its
+    decoding errors (a value of the wrong type, a config class that refuses its arguments) too, with their cause,
+    instead of LeRobot's exit code 1 or draccus's "Couldn't instantiate class" that hides which value and why."""
 
     def error(parser: SuppressingArgumentParser, message: str) -> NoReturn:
         raise UsageError(message)
 
-    original = SuppressingArgumentParser.error
+    def parse(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return original_parse(*args, **kwargs)
+        except ParsingError as e:
+            raise UsageError(_with_causes(e)) from None
+
+    original, original_parse = SuppressingArgumentParser.error, draccus.parse
     SuppressingArgumentParser.error = error  # type: ignore[method-assign]
+    draccus.parse = parse
     try:
         yield
     finally:
         SuppressingArgumentParser.error = original  # type: ignore[method-assign]
+        draccus.parse = original_parse
+
+
+def _with_causes(error: BaseException) -> str:
+    """``error``'s message followed by its causes', on one line."""
+    messages = []
+    while error is not None:
+        messages.append(" ".join(str(error).split()).rstrip("."))
+        error = error.__cause__
+    return ": ".join(messages)
 
 
 def check_number(
@@ -51,3 +75,32 @@ def check_number(
     if not (number and math.isfinite(value) and all(COMPARISONS[s](value, b) for s, b in bounds.items())):
         wanted = " ".join(["a finite number", " and ".join(f"{symbol} {bound:g}" for symbol, bound in bounds.items())])
         raise error(f"{name} must be {wanted.strip()}{' (or null)' if optional else ''}, got {value}")
+
+
+@contextmanager
+def interruptible(where: str) -> Iterator[None]:
+    """Name the work inside the block on a ``KeyboardInterrupt`` that stops it (the innermost block names it)."""
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        if interrupted_where(e) is None:
+            e.add_note(where)
+        raise
+
+
+def interrupted_where(error: KeyboardInterrupt) -> str | None:
+    """What :func:`interruptible` named, if anything."""
+    notes = getattr(error, "__notes__", None)
+    return notes[0] if notes else None
+
+
+def check_output_dir(path: Path, flag: str = "--output_dir") -> None:
+    """Refuse an output directory that cannot be made or written into (a file, or under a read-only directory),
+    before any work rather than at the first write."""
+    existing = path.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"{flag}={path}: {existing} is a file, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag}={path}: {existing} is not writable")

@@ -6,10 +6,12 @@ items, no per-item Arrow query). The run writes LeRobot's own output dir; a reru
 is ``<output_dir>/checkpoints/last/pretrained_model``.
 """
 
+import ctypes
 import dataclasses
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -23,6 +25,7 @@ from lerobot_cso.stage import settings_spec
 # Policy fields the stage sets itself (or that the dataset fills in).
 RESERVED_POLICY_KEYS = ("type", "path", "pretrained_path", "tasks", "n_autoencoder_steps")
 RUNTIME_FIELDS = ("num_workers", "save_freq", "log_freq")  # do not change the trained policy
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a child gets when its parent dies
 
 
 @dataclass
@@ -140,6 +143,19 @@ def lerobot_train(args: list[str], threads: int | None) -> None:
     command = [sys.executable, "-m", "lerobot_cso.train", *args]
     env = os.environ | ({"OMP_NUM_THREADS": str(threads)} if threads else {})
     print("[pipeline] " + " ".join(command), flush=True)
-    returncode = subprocess.run(command, env=env).returncode
+    returncode = run_tied(command, env)
     if returncode != 0:
         raise RuntimeError(f"lerobot-train failed with exit code {returncode} (its output is above)")
+
+
+def run_tied(command: list[str], env: dict[str, str]) -> int:
+    """Run ``command`` to its end and return its exit code; on Linux it is killed when this process dies, even by
+    ``kill -9``, so a rerun never finds an orphaned trainer still writing the same output dir."""
+    parent = os.getpid()
+
+    def die_with_parent() -> None:  # in the child, before exec
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        if os.getppid() != parent:  # the parent died before the request was made
+            os._exit(1)
+
+    return subprocess.run(command, env=env, preexec_fn=die_with_parent if sys.platform == "linux" else None).returncode

@@ -29,7 +29,6 @@ with the same rollout settings share one env pool, whose worker processes and Mu
 """
 
 import dataclasses
-import datetime as dt
 import sys
 import time
 from dataclasses import dataclass, field
@@ -46,14 +45,15 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot_cso.cso.rsft import RSFTConfig, RSFTStage
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig, demos_stage
-from lerobot_cso.durable import read_json, write_atomic, write_json
-from lerobot_cso.errors import UsageError
+from lerobot_cso.durable import output_lock, read_json, write_atomic, write_json
+from lerobot_cso.errors import UsageError, check_output_dir
 from lerobot_cso.evaluation import EvalConfig, EvalStage
 from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
+from lerobot_cso.records import run_recorded
 from lerobot_cso.rollout.pool import kept_pools
 from lerobot_cso.rollout.world import world_for
-from lerobot_cso.stage import PIPELINE_FIELDS, Stage, without_added_settings
+from lerobot_cso.stage import PIPELINE_FIELDS, Stage
 
 SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
 EVALUATED = {"il": "IL", "rsft": "R-SFT", "cso": "CSO"}  # evaluation name → table column
@@ -84,15 +84,6 @@ class PipelineConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     rsft: RSFTConfig = field(default_factory=RSFTConfig)
     spo: SPOConfig = field(default_factory=SPOConfig)
-
-
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(data, dict):
-        return {prefix: data}
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        out |= _flatten(value, f"{prefix}.{key}" if prefix else key)
-    return out
 
 
 def check_sections(args: list[str], config_path: str | None) -> None:
@@ -173,6 +164,7 @@ class Pipeline:
 
     def validate(self) -> None:
         """Check every section before anything runs, with a stand-in for the policies still to be trained."""
+        check_output_dir(self.out)
         self.demos_config().validate()
         self.cfg.il.validate()
         describe = world_for(self.cfg.tasks).task_description
@@ -201,40 +193,9 @@ class Pipeline:
 
     def _execute(self, stage: Stage, after: str | None) -> Any:
         spec = stage.spec() | ({"after": {after: self.finished_at(after)}} if after else {})
-        output, record = stage.output(), read_json(self.record_path(stage.name))
-        current = without_added_settings(spec)
-        recorded = None if record is None else without_added_settings(record["spec"])
-        same = recorded == current
-        if record is not None and not same and output.exists() and not stage.redo_on_change:
-            old, new = _flatten(recorded), _flatten(current)
-            changed = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
-            listed = ", ".join(f"{k}: {old.get(k)} → {new.get(k)}" for k in changed)
-            if not all(k in stage.grows and isinstance(old.get(k), int) and new.get(k, 0) > old[k] for k in changed):
-                raise UsageError(
-                    f"{output} was made with other settings or inputs ({listed}); delete it and the stages after "
-                    "it, or choose another output_dir"
-                )
-            print(f"[pipeline] {stage.name}: continuing ({listed})", flush=True)
-        if same and record["complete"] and stage.complete():
-            print(f"[pipeline] {stage.name}: complete, skipped ({output})", flush=True)
-            self.seconds[stage.name] = record["seconds"]
-            return record["summary"]
-        print(f"[pipeline] {stage.name}: running → {output}", flush=True)
-        self.record_path(stage.name).parent.mkdir(parents=True, exist_ok=True)
-        write_json(self.record_path(stage.name), {"spec": spec, "complete": False})
-        started = time.perf_counter()
-        summary = stage.run()
-        seconds = time.perf_counter() - started
-        self.seconds[stage.name] = seconds
-        finished = {
-            "spec": spec,
-            "complete": True,
-            "finished_at": dt.datetime.now().isoformat(),
-            "seconds": seconds,
-            "summary": summary,
-        }
-        write_json(self.record_path(stage.name), finished)
-        print(f"[pipeline] {stage.name}: done in {seconds:.0f} s", flush=True)
+        elsewhere = "delete it and the stages after it, or choose another output_dir"
+        label = f"[pipeline] {stage.name}"
+        summary, self.seconds[stage.name] = run_recorded(stage, self.record_path(stage.name), spec, label, elsewhere)
         return summary
 
     def evaluate(self, label: str, policy: Path, upstream: str) -> dict[str, Any]:
@@ -362,8 +323,10 @@ def plot_results(path: Path, rates: dict[str, dict[str, Any]], spo_history: list
 
 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, Any]:
-    """Run (or resume) the whole pipeline; returns the results."""
-    return Pipeline(cfg).run()
+    """Run (or resume) the whole pipeline, the only writer of its output dir; returns the results."""
+    pipeline = Pipeline(cfg)
+    with output_lock(pipeline.out):
+        return pipeline.run()
 
 
 @parser.wrap()

@@ -25,7 +25,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
 from lerobot_cso.checkpoints import PolicyPathConfig
-from lerobot_cso.errors import UsageError, check_number
+from lerobot_cso.errors import UsageError, check_number, check_output_dir
 from lerobot_cso.rollout.engine import Sampling
 from lerobot_cso.rollout.operator import OperatorConfig
 from lerobot_cso.rollout.pool import VECTORIZATIONS
@@ -91,6 +91,8 @@ class RolloutStageConfig(PolicyPathConfig):
             if self.output_dir is None:
                 raise UsageError("--output_dir is required with --robot.type (the episodes are journaled there)")
             check_policy_fits(self.robot, self.policy)
+        if self.output_dir is not None:
+            check_output_dir(self.output_dir)
         world = self.world()
         try:
             tasks = world.resolve_tasks(self.tasks)

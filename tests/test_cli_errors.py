@@ -7,20 +7,31 @@ subprocess is used only where the process itself is what is tested (its exit cod
 from __future__ import annotations
 
 import dataclasses
+import json
+import logging
 import math
+import os
+import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
+import torch
+from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
 
-from lerobot_cso.cso.rsft import RSFTConfig
+from lerobot_cso import cli
+from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig
 from lerobot_cso.demos import DemosConfig
+from lerobot_cso.durable import EpisodeJournal, output_lock
 from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig
 from lerobot_cso.policy.configuration_cso import CSOConfig
-from lerobot_cso.rollout.engine import Sampling
+from lerobot_cso.rollout.engine import RolloutEngine, Sampling
 from lerobot_cso.rollout.operator import OperatorConfig
 
 NAN, INF = math.nan, math.inf
@@ -34,7 +45,7 @@ def stand_in_policy() -> CSOConfig:
 
 
 def rollout_config(cls: type, **settings):
-    return cls(tasks="reach-v3", policy=stand_in_policy(), output_dir=Path("/tmp/unused"), **settings)
+    return cls(**{"tasks": "reach-v3", "policy": stand_in_policy(), "output_dir": Path("/tmp/unused")} | settings)
 
 
 @pytest.mark.parametrize("bad", [NAN, INF, -INF])
@@ -102,3 +113,219 @@ def test_check_number_names_the_setting_its_bounds_and_the_value():
         check_number("x", NAN, ge=0, lt=1, optional=True)
     with pytest.raises(ValueError, match=r"^x must be a finite number > 0, got -1$"):
         check_number("x", -1, gt=0, error=ValueError)
+
+
+@pytest.fixture(scope="module")
+def two_policies(tmp_path_factory) -> tuple[Path, Path]:
+    """Two tiny saved policies of the same shape with other weights."""
+    root = tmp_path_factory.mktemp("policies")
+    return tuple(save_tiny_metaworld_policy(root / f"policy{seed}" / "pretrained_model", seed) for seed in (0, 1))
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
+    """``lerobot-cso ARGS`` in this process: exit code, stdout and the last stderr line."""
+    code = cli.main(args)
+    out, err = capsys.readouterr()
+    return code, out, (err.strip().splitlines() or [""])[-1]
+
+
+@pytest.fixture
+def scripted_rollouts(monkeypatch):
+    """Every stage rolls out on a ScriptedEngine (mixed outcomes) instead of MetaWorld."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(RolloutEngine, "for_stage", lambda policy, pre, post, cfg: ScriptedEngine(mixed, policy=policy))
+
+
+def test_standalone_spo_continues_only_what_it_can_honour(two_policies, tmp_path, capsys, scripted_rollouts):
+    """Issue 35, item 1: a rerun of ``lerobot-cso spo`` with another policy, objective, K or lr, or fewer
+    iterations, was resumed or called complete; now each difference is refused by name."""
+    first, other = two_policies
+    out = tmp_path / "spo"
+    spo = ["spo", f"--tasks={','.join(TASKS)}", f"--output_dir={out}", "--groups_per_iteration=2", "--epochs=1"]
+    spo += ["--minibatch_trajectories=4", "--lr=0.001"]
+    assert run_cli([*spo, f"--policy.path={first}", "--group_size=4", "--iterations=1"], capsys)[0] == 0
+    code, stdout, _ = run_cli([*spo, f"--policy.path={first}", "--group_size=4", "--iterations=1"], capsys)
+    assert code == 0 and f"spo: complete, skipped ({out})" in stdout
+    code, stdout, _ = run_cli([*spo, f"--policy.path={first}", "--group_size=4", "--iterations=2"], capsys)
+    assert code == 0 and "spo: continuing (spo.iterations: 1 → 2)" in stdout
+    refused = {
+        ("--group_size=4", "--iterations=1"): "(spo.iterations: 2 → 1)",
+        ("--group_size=3", "--iterations=3", "--objective=token"): "spo.group_size: 4 → 3, spo.iterations: 2 → 3, "
+        "spo.objective: skill → token)",
+    }
+    for args, named in refused.items():
+        code, _, err = run_cli([*spo, f"--policy.path={first}", *args], capsys)
+        assert code == 2 and err.startswith(f"error: {out} was made with other settings or inputs (") and named in err
+    code, _, err = run_cli([*spo, f"--policy.path={other}", "--group_size=4", "--iterations=3"], capsys)
+    assert code == 2 and f"policy.path: {first.resolve()} → {other.resolve()}" in err
+    assert "policy.weights_sha256" in err and "delete it or choose another --output_dir" in err
+    assert json.loads((out / "stage.json").read_text())["summary"][-1]["iteration"] == 2
+
+
+def test_standalone_rsft_is_complete_only_for_the_same_settings_and_policy(
+    two_policies, tmp_path, capsys, scripted_rollouts
+):
+    """A finished ``lerobot-cso rsft`` said "already complete" for any settings or policy."""
+    first, other = two_policies
+    out = tmp_path / "rsft"
+    rsft = ["rsft", f"--tasks={','.join(TASKS)}", f"--output_dir={out}", "--successes_per_task=1", "--n_strikes=4"]
+    rsft += ["--epochs=1", "--batch_size=8", "--lr=0.001", "--min_lr=0.0001"]
+    assert run_cli([*rsft, f"--policy.path={first}"], capsys)[0] == 0
+    code, stdout, _ = run_cli([*rsft, f"--policy.path={first}"], capsys)
+    assert code == 0 and f"rsft: complete, skipped ({out})" in stdout
+    code, _, err = run_cli([*rsft, f"--policy.path={first}", "--n_strikes=5"], capsys)
+    assert code == 2 and "(rsft.n_strikes: 4 → 5)" in err
+    code, _, err = run_cli([*rsft, f"--policy.path={other}"], capsys)
+    assert code == 2 and f"policy.path: {first.resolve()} → {other.resolve()}" in err
+
+
+def test_a_fresh_training_run_too_short_to_reach_the_prior_is_warned_about(caplog):
+    """Issue 35, item 6: ``lerobot-train --policy.type=cso --steps=N`` with N <= n_autoencoder_steps trained no
+    prior, silently; a run from a checkpoint (``--policy.path``, the stage-by-stage way) is not warned about."""
+    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+    fresh = CSOConfig(device="cpu", n_autoencoder_steps=10).get_scheduler_preset()
+    with caplog.at_level(logging.WARNING):
+        fresh.build(optimizer, 20)
+        assert not caplog.records
+        fresh.build(optimizer, 10)
+    assert "--steps=10 <= --policy.n_autoencoder_steps=10: this run trains only the skill autoencoder" in caplog.text
+    caplog.clear()
+    staged = CSOConfig(device="cpu", n_autoencoder_steps=10)
+    staged.pretrained_path = Path("/some/checkpoint")
+    with caplog.at_level(logging.WARNING):
+        staged.get_scheduler_preset().build(optimizer, 5)
+    assert not caplog.records
+    with pytest.raises(ValueError, match="n_autoencoder_steps must be a finite number >= 0, got -1"):
+        CSOConfig(device="cpu", n_autoencoder_steps=-1)
+
+
+def test_ctrl_c_is_one_line_saying_where_it_stopped_and_how_to_resume(two_policies, tmp_path, capsys, monkeypatch):
+    """Issue 35, item 7: Ctrl-C printed a 30-45-line KeyboardInterrupt traceback."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    crashing = lambda policy, pre, post, cfg: ScriptedEngine(mixed, crash_after=3, policy=policy)  # noqa: E731
+    monkeypatch.setattr(RolloutEngine, "for_stage", crashing)
+    out = tmp_path / "spo"
+    code, _, err = run_cli(
+        ["spo", f"--policy.path={two_policies[0]}", f"--tasks={','.join(TASKS)}", f"--output_dir={out}"], capsys
+    )
+    assert code == 130
+    assert err == (
+        f"interrupted: lerobot-cso spo stopped in stage spo, writing {out}; the work it finished is saved, and the "
+        "same command resumes from it"
+    )
+
+
+def test_a_value_of_the_wrong_type_is_one_error_line_and_exit_2(capsys, monkeypatch):
+    """Issue 35, item 3: ``--episodes_per_task=abc`` exited 1 with draccus's message."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    code, _, err = run_cli(["demos", "--episodes_per_task=abc"], capsys)
+    assert code == 2 and err.startswith("error: ") and "abc" in err
+
+
+def test_help_and_a_misspelt_subcommand_import_neither_torch_nor_lerobot():
+    """Issue 35, item 9: every lerobot-cso call, even --help, imported torch and LeRobot first (~8 s idle)."""
+    code = (
+        "import sys; from lerobot_cso import cli; assert cli.main(['--help']) == 0; assert cli.main(['demoz']) == 2; "
+        "heavy = sorted(m for m in ('torch', 'lerobot.policies', 'metaworld') if m in sys.modules); print(heavy)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_path):
+    """Issue 35, item 5: two runs on one output dir crashed one of them; kill -9 of the pipeline left its
+    lerobot-train child writing ``il/``."""
+    out = tmp_path / "spo"
+    with output_lock(out):  # a second opening of the lock file contends as another process's would
+        with pytest.raises(UsageError, match=rf"^{out} is being written by another run \(pid {os.getpid()}: "):
+            with output_lock(out):
+                pass
+    with output_lock(out):  # released with its holder
+        pass
+    parent = (
+        "import sys; from lerobot_cso.il import run_tied; "
+        "run_tied([sys.executable, '-c', 'import os, time; print(os.getpid(), flush=True); time.sleep(120)'], {})"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
+    child = int(proc.stdout.readline())
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while alive(child) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not alive(child)
+
+
+def alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for init to reap it does not)."""
+    try:
+        return "\nState:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+
+
+def test_what_would_fail_late_is_refused_before_any_work(two_policies, tmp_path):
+    """Issue 35, item 4: an output dir that is a file failed at the first write (eval lost its evaluation),
+    ``spo --ratio_top_k=0`` after the rollouts, ``rsft --demos_root=<missing>`` after the whole collection."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    out = blocker / "out"
+    for cls in (EvalConfig, RSFTConfig, SPOConfig):
+        with pytest.raises(UsageError, match=f"^--output_dir={out}: {blocker} is a file, not a directory$"):
+            rollout_config(cls, output_dir=out).validate()
+    with pytest.raises(UsageError, match=f"^--output_dir={out}: {blocker} is a file"):
+        DemosConfig(tasks="reach-v3", output_dir=out).validate()
+    with pytest.raises(UsageError, match=f"^--output_dir={blocker}: {blocker} is a file"):
+        Pipeline(PipelineConfig(tasks="reach-v3", output_dir=blocker))
+    with pytest.raises(UsageError, match="^ratio_top_k must be a finite number >= 1 \\(or null\\), got 0$"):
+        rollout_config(SPOConfig, ratio_top_k=0).validate()
+    cfg = rollout_config(RSFTConfig, output_dir=tmp_path / "rsft", demo_fraction=0.5, demos_root=tmp_path / "none")
+    cfg.policy.pretrained_path = two_policies[0]
+    engines = []
+    with pytest.raises(UsageError, match="--demos_root=.* is not a LeRobotDataset"):
+        run_rsft(cfg, make_engine=lambda *args: engines.append(args) or ScriptedEngine(mixed))
+    assert engines == []
+
+
+def damaged_copies(policy: Path, root: Path) -> dict[str, Path]:
+    """Copies of a saved policy, each damaged in one way: name -> the policy dir."""
+    copies = {}
+    for name in ("truncated_weights", "empty_weights", "truncated_config", "no_preprocessor", "act_config"):
+        copies[name] = shutil.copytree(policy, root / name / "pretrained_model")
+    weights = copies["truncated_weights"] / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    (copies["empty_weights"] / "model.safetensors").write_bytes(b"")
+    config = copies["truncated_config"] / "config.json"
+    config.write_text(config.read_text()[:100])
+    (copies["no_preprocessor"] / "policy_preprocessor.json").unlink()
+    config = copies["act_config"] / "config.json"
+    config.write_text(json.dumps(json.loads(config.read_text()) | {"type": "act"}))
+    return copies
+
+
+def test_damaged_or_foreign_inputs_are_one_line_naming_the_file(two_policies, tmp_path, capsys, scripted_rollouts):
+    """Issue 35, item 3: a truncated or empty model.safetensors, a truncated config.json, a missing preprocessor,
+    an ACT checkpoint and a corrupted stage record or journal episode each gave a traceback."""
+    copies = damaged_copies(two_policies[0], tmp_path)
+    expected = {
+        "truncated_weights": f"error: {copies['truncated_weights'] / 'model.safetensors'} is damaged (",
+        "empty_weights": f"error: {copies['empty_weights'] / 'model.safetensors'} is damaged (",
+        "truncated_config": f"error: {copies['truncated_config'] / 'config.json'} is damaged (",
+        "no_preprocessor": f"error: {copies['no_preprocessor'] / 'policy_preprocessor.json'} is missing",
+        "act_config": f"error: --policy.path={copies['act_config']} is a 'act' policy; lerobot-cso post-trains cso",
+    }
+    for name, path in copies.items():
+        code, _, err = run_cli(["eval", f"--policy.path={path}", f"--tasks={TASKS[0]}"], capsys)
+        assert code == 2 and err.startswith(expected[name]), (name, err)
+    out = tmp_path / "spo"
+    out.mkdir()
+    (out / "stage.json").write_text('{"spec": {"spo": ')
+    spo = ["spo", f"--policy.path={two_policies[0]}", f"--tasks={','.join(TASKS)}", f"--output_dir={out}"]
+    code, _, err = run_cli(spo, capsys)
+    assert code == 2 and err.startswith(f"error: {out / 'stage.json'} is damaged (")
+    episode = tmp_path / "journal" / "episodes" / "reach-v3" / "0000001.npz"
+    episode.parent.mkdir(parents=True)
+    episode.write_bytes(b"PK\x03\x04 cut short")
+    with pytest.raises(UsageError, match=f"^{episode} is damaged"):
+        EpisodeJournal.load(episode)

@@ -48,6 +48,7 @@ from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
+from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
 from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.stage import CheckpointStage, without_added_settings
@@ -329,10 +330,15 @@ def success_advantages(
     return torch.tensor([per_state[state] for state in zip(tasks, seeds, strict=True)], dtype=torch.float64)
 
 
-def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
-    """``count`` demonstration frames (drawn with R-SFT's seed) tokenised by the frozen autoencoder."""
+def check_demos(cfg: RSFTConfig) -> None:
+    """Refuse a ``demos_root`` that holds no LeRobotDataset."""
     if not (cfg.demos_root / "meta" / "info.json").is_file():
         raise UsageError(f"--demos_root={cfg.demos_root} is not a LeRobotDataset (no meta/info.json)")
+
+
+def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
+    """``count`` demonstration frames (drawn with R-SFT's seed) tokenised by the frozen autoencoder."""
+    check_demos(cfg)
     fps = LeRobotDatasetMetadata(cfg.demos_repo_id, root=cfg.demos_root).fps
     chunk = {"action": [i / fps for i in range(policy.config.chunk_size)]}
     ds = in_memory(LeRobotDataset(cfg.demos_repo_id, root=cfg.demos_root, delta_timestamps=chunk, video_backend="pyav"))
@@ -442,6 +448,8 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = Rollou
     ``make_engine(policy, preprocessor, postprocessor, cfg)`` builds the rollout engine.
     """
     tasks = cfg.validate()
+    if cfg.demo_fraction:
+        check_demos(cfg)  # before the collection, not after it
     if (cfg.output_dir / "pretrained_model" / "config.json").is_file():
         print(f"{cfg.output_dir / 'pretrained_model'} exists: R-SFT already complete")
         return json.loads((cfg.output_dir / "collection.json").read_text())
@@ -490,6 +498,6 @@ class RSFTStage(CheckpointStage):
 
 @parser.wrap()
 def rsft_main(cfg: RSFTConfig) -> None:
-    """Entry point of ``lerobot-cso rsft``."""
-    run_rsft(cfg)
+    """Entry point of ``lerobot-cso rsft``: resumes or skips only an output of the same settings and checkpoint."""
+    run_alone(RSFTStage(cfg), main=distributed.is_main())
     print(f"R-SFT checkpoint (encoders frozen): {cfg.output_dir / 'pretrained_model'}")

@@ -52,6 +52,7 @@ from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
 from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.policy import CSOPolicy
+from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.stage import CheckpointStage
@@ -451,6 +452,6 @@ class SPOStage(CheckpointStage):
 
 @parser.wrap()
 def spo_main(cfg: SPOConfig) -> None:
-    """Entry point of ``lerobot-cso spo``."""
-    run_spo(cfg)
+    """Entry point of ``lerobot-cso spo``: resumes or skips only an output of the same settings and checkpoint."""
+    run_alone(SPOStage(cfg), main=distributed.is_main())
     print(f"SPO checkpoint: {cfg.output_dir / 'pretrained_model'}")
