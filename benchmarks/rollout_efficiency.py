@@ -5,7 +5,9 @@ experts step in one process (one core, ``sync``), the policy rollouts with ``--v
 ``processes``: one worker per core). Measurements alternate between the two for ``--rounds`` rounds so that
 load from other processes hits both alike. Throughput is env steps per wall-clock second, resets and (for the
 policy) batched inference included. Goal: ratio >= 1.6 with both cores. The experts end their episodes
-sooner and so reset more often per step; the ratio without reset time is printed as well.
+sooner and so reset more often per step; the ratio without reset time is printed as well. A camera policy's envs
+give what it reads (its state layout, its camera at its image size) and render only the frames its decisions
+read, as evaluation and SPO do; the experts' envs render nothing.
 
 Without ``--policy_path`` a small cso policy is made first: scripted demos for the tasks, then
 ``lerobot-train`` for ``--train_steps`` steps (half autoencoder, half prior).
@@ -22,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,11 +32,14 @@ import torch
 
 from lerobot_cso.demos import DemosConfig, generate_demos
 from lerobot_cso.envs import seeds
+from lerobot_cso.envs.constants import IMAGE_SIZE
+from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, state_layout
 from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+from lerobot_cso.rollout.engine import RolloutEngine, Sampling, policy_cameras
 from lerobot_cso.rollout.expert import ExpertController
 from lerobot_cso.rollout.pool import EnvPool, Job
 from lerobot_cso.rollout.sharded import ShardedVectorEnv
+from lerobot_cso.rollout.world import image_size_of
 
 SMALL_POLICY = [
     "--policy.ae_dim=128",
@@ -92,6 +98,16 @@ def mean_reset_seconds(pool: EnvPool, tasks: list[str], n: int = 10) -> float:
     return (time.perf_counter() - started) / (n * len(tasks))
 
 
+def pool_for(policy: torch.nn.Module, num_envs: int, max_steps: int, vectorization: str) -> EnvPool:
+    """Envs that give the policy what it reads, rendering only its decision frames."""
+    features = policy.config.input_features
+    cameras = tuple(policy_cameras(policy))
+    size = image_size_of(features, IMAGE_SIZE)
+    state = state_layout(features["observation.state"].shape[-1])
+    factory = partial(CSOMetaWorldEnv, "reach-v3", cameras, size, max_steps, state=state)
+    return EnvPool(num_envs, cameras, size, max_steps, vectorization, env_factory=factory, frames="decisions")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", default="reach-v3,button-press-v3,pick-place-v3,door-open-v3")
@@ -128,7 +144,7 @@ def main() -> None:
     lengths: dict[str, list[float]] = {"expert": [], "policy": []}
     decisions, policy_seconds = 0, 0.0
     with (
-        EnvPool(args.num_envs, max_steps=args.max_steps, vectorization=args.vectorization) as policy_pool,
+        pool_for(policy, args.num_envs, args.max_steps, args.vectorization) as policy_pool,
         EnvPool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
         RolloutEngine(policy, pre, post, policy_pool, task_description) as engine,
     ):
