@@ -7,9 +7,10 @@ on its real-time thread, on a python-can ``virtual`` bus, with a commander threa
 * ``reset``: ``reset()`` lands at a random moment of the command stream. Violation: a mode or joint
   frame (0x151, 0x155..0x157) acted on while the firmware's delayed motor-off is pending.
 * ``resume``: the driver is e-stopped; ``resume()`` runs while another thread calls ``emergency_stop()``
-  at a random moment (before, during or after the resume). Violations: a motion frame (0x151,
-  0x155..0x157, 0x159) acted on while the firmware is e-stopped; the trial ending with the driver or
-  the firmware not e-stopped (an e-stop was requested last, so it must win).
+  at a random moment after the resume began (during or after it; a gate on the resume's first look at
+  the state marks its start). Violations: a motion frame (0x151, 0x155..0x157, 0x159) acted on while
+  the firmware is e-stopped; the trial ending with the driver or the firmware not e-stopped (the
+  e-stop was requested last, so it must win).
 * ``estop``: ``emergency_stop()`` lands at a random moment of the command stream. Violation: a motion
   frame acted on while the firmware is e-stopped.
 * ``foreign``: another host's reset (0x150 02) lands at a random moment of the command stream; the
@@ -42,6 +43,7 @@ from piper_can.driver import DriverConfig, PiperDriver
 from piper_can.emulator import PiperEmulator
 from piper_can.errors import PiperError
 from piper_can.firmware import EmulatorConfig
+from piper_can.state import ArmState
 
 MODE_AND_JOINTS = (ID_MODE_CONTROL, *ID_JOINT_COMMAND)
 MOTION = (*MODE_AND_JOINTS, 0x159)
@@ -142,20 +144,38 @@ def race_resume(rig: Arm, rng: random.Random) -> int:
     time.sleep(0.02)
     rig.witness.take()
     commander = Commander(driver)
-    stopper = threading.Timer(rng.uniform(0.0, 0.3), driver.emergency_stop)
+    began = threading.Event()
+    resumer, state = threading.current_thread(), driver.link.state
+
+    def noting_state() -> ArmState:  # resume()'s first look at the state: it has begun
+        if threading.current_thread() is resumer:
+            began.set()
+        return state()
+
+    def stop_later() -> None:
+        began.wait()
+        time.sleep(rng.uniform(0.0, 0.3))
+        driver.emergency_stop()
+
+    stopper = threading.Thread(target=stop_later)
+    driver.link.state = noting_state  # type: ignore[method-assign]
     stopper.start()
     try:
         driver.resume()
     except PiperError:
         pass  # aborted by the e-stop (or a refusal it caused): what must happen
-    stopper.join()
-    time.sleep(0.05)
+    finally:
+        began.set()
+        stopper.join()
+        driver.link.state = state  # type: ignore[method-assign]
+    # The e-stop frame is on the bus: give a stalled emulator thread time to act on it before judging.
+    deadline = time.monotonic() + 2.0
+    while not rig.emulator.firmware.estopped and time.monotonic() < deadline:
+        time.sleep(0.01)
     commander.stop()
     seen = rig.witness.take()
     violations = sum(1 for frame_id, _, estopped in seen if estopped and frame_id in MOTION)
-    with rig.emulator.locked() as firmware:
-        firmware_estopped = firmware.estopped
-    return violations + (not driver.estopped) + (not firmware_estopped)
+    return violations + (not driver.estopped) + (not rig.emulator.firmware.estopped)
 
 
 def race_estop(rig: Arm, rng: random.Random) -> int:
@@ -181,7 +201,7 @@ def race_foreign(rig: Arm, rng: random.Random) -> int:
     return sum(1 for frame_id, pending, _ in seen if pending and frame_id in MODE_AND_JOINTS)
 
 
-def restart(rig: Arm, attempts: int = 5) -> None:
+def restart(rig: Arm, attempts: int = 10) -> None:
     """Reconnect and recover the driver after a trial the machine's load broke."""
     for attempt in range(attempts):
         rig.driver.close()
@@ -192,6 +212,7 @@ def restart(rig: Arm, attempts: int = 5) -> None:
         except PiperError:
             if attempt == attempts - 1:
                 raise
+            time.sleep(0.2)
     rig.witness.take()
 
 
