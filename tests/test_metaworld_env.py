@@ -177,3 +177,29 @@ def test_render_every_renders_only_decision_frames_and_the_first_frame_is_framed
         frames.append(obs["pixels"]["corner2"])
     assert all(frames[t] is frames[t - t % 4] for t in range(9))  # steps 1-3 and 5-7 repeat the decision frame
     assert not np.array_equal(frames[0], frames[4]) and not np.array_equal(frames[4], frames[8])  # the hand moved
+
+
+def test_envs_of_a_task_share_one_renderer_and_render_what_their_own_would():
+    """One renderer per task and size in a process (an EGL context each); an env rendering through the renderer built
+    from another env's model sees exactly what a renderer of its own model shows."""
+    import mujoco
+
+    first = CSOMetaWorldEnv("button-press-v3", cameras=("corner2",), image_size=32, state="proprio")
+    other = CSOMetaWorldEnv("button-press-v3", cameras=("corner2",), image_size=32, state="proprio")
+    first.reset(seed=1)
+    shared, _ = other.reset(seed=7)  # another placement of the button box
+    model = other.sim.model
+    model.vis.quality.offsamples, model.vis.quality.shadowsize = 0, 0  # as the env's renderer (no multisampling)
+    model.vis.global_.offwidth = model.vis.global_.offheight = 32
+    own = mujoco.Renderer(model, 32, 32)
+    own.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+    own.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+    own.update_scene(other.sim.data, camera="corner2")
+    np.testing.assert_array_equal(shared["pixels"]["corner2"], own.render()[::-1, ::-1])
+    assert not np.array_equal(shared["pixels"]["corner2"], first.reset(seed=1)[0]["pixels"]["corner2"])
+    own.close()
+    from lerobot_cso.envs import metaworld_env
+
+    assert metaworld_env._renderer("button-press-v3", 32, other.sim.model) is metaworld_env._renderer(
+        "button-press-v3", 32, first.sim.model
+    )

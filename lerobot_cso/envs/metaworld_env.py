@@ -60,6 +60,30 @@ def _zeros(space: spaces.Space) -> Any:
     return np.zeros(space.shape, space.dtype)
 
 
+_RENDERERS: dict[tuple[str, int], mujoco.Renderer] = {}
+
+
+def _renderer(task: str, size: int, model: mujoco.MjModel) -> mujoco.Renderer:
+    """The process's renderer of ``task`` at ``size``², built from the first ``model`` asked for it.
+
+    One per task and size, not one per env: a renderer holds an EGL context (≈ 58 MB in Mesa's llvmpipe, against ≈ 27
+    MB for the task's simulation), and a worker of 24 envs over 3 tasks held 5-7 GB with one per env. Every env of a
+    task has the same model structure, meshes and textures; what differs between them (object and goal placements,
+    the camera pose) reaches the scene through each env's own ``data``.
+    """
+    renderer = _RENDERERS.get((task, size))
+    if renderer is None:
+        model.vis.quality.offsamples = 0
+        model.vis.quality.shadowsize = 0
+        model.vis.global_.offwidth = size
+        model.vis.global_.offheight = size
+        renderer = mujoco.Renderer(model, size, size)
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        _RENDERERS[(task, size)] = renderer
+    return renderer
+
+
 def check_cameras(cameras: Sequence[str]) -> None:
     """Raise ``ValueError`` naming the valid cameras when one is unknown."""
     unknown = [c for c in cameras if c not in CAMERAS]
@@ -123,7 +147,6 @@ class CSOMetaWorldEnv(gym.Env):
         self._max_episode_steps = max_episode_steps
         self._max_cached_tasks = max(1, max_cached_tasks)
         self._sims: OrderedDict[str, Any] = OrderedDict()
-        self._renderers: dict[str, mujoco.Renderer] = {}
         self._set_task(task)
         self._t = 0
         self._parked = False
@@ -158,9 +181,6 @@ class CSOMetaWorldEnv(gym.Env):
         return sim
 
     def _evict(self, task: str) -> None:
-        renderer = self._renderers.pop(task, None)
-        if renderer is not None:
-            renderer.close()
         self._sims.pop(task).close()
 
     def _set_task(self, task: str) -> None:
@@ -168,22 +188,8 @@ class CSOMetaWorldEnv(gym.Env):
         self.task = task
         self.task_description = task_description(task)
 
-    def _renderer(self) -> mujoco.Renderer:
-        renderer = self._renderers.get(self.task)
-        if renderer is None:
-            model = self.sim.model
-            model.vis.quality.offsamples = 0
-            model.vis.quality.shadowsize = 0
-            model.vis.global_.offwidth = self.image_size
-            model.vis.global_.offheight = self.image_size
-            renderer = mujoco.Renderer(model, self.image_size, self.image_size)
-            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-            self._renderers[self.task] = renderer
-        return renderer
-
     def _image(self, camera: str) -> np.ndarray:
-        renderer = self._renderer()
+        renderer = _renderer(self.task, self.image_size, self.sim.model)
         renderer.update_scene(self.sim.data, camera=camera)
         image = renderer.render()
         return np.ascontiguousarray(image[::-1, ::-1]) if camera in _UPSIDE_DOWN else image
