@@ -44,6 +44,8 @@ class RolloutStageConfig(PolicyPathConfig):
     # Whether the stage keeps every frame of an episode (R-SFT's buffer does); a world may then render only
     # the frames a decision needs.
     records_frames: ClassVar[bool] = True
+    # Whether each decision keeps the encoders' inputs (SPO without the encoder freeze recomputes its contexts).
+    keeps_inputs: ClassVar[bool] = False
 
     # One task, a comma list, or a set of the world (MetaWorld: MT10, MT50, ML45-train, ML45-test).
     tasks: str = "MT10"
@@ -74,7 +76,10 @@ class RolloutStageConfig(PolicyPathConfig):
         """The settings the stage's output depends on: not the pipeline's fields nor ``display_data``, and the
         robot's settings only when it runs on a robot."""
         robot = () if self.robot is not None else ROBOT_FIELDS
-        return settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", "train_threads", *robot))
+        spec = settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", "train_threads", *robot))
+        if self.robot is not None:  # how the arm is reached and recovered does not change what an episode keeps
+            spec["robot"] = {"type": self.robot.type}
+        return spec
 
     def horizon(self) -> int:
         """The episode cap of the rollouts: ``max_steps``, or the world's horizon."""

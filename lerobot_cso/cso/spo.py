@@ -141,10 +141,17 @@ class SPOConfig(TrainingStageConfig):
         check_number("grad_clip_norm", self.grad_clip_norm, gt=0)
         check_number("target_kl", self.target_kl, gt=0, optional=True)
         check_number("ratio_top_k", self.ratio_top_k, ge=1, optional=True)
+        if not self.encoder_freeze and self.robot is not None:
+            raise UsageError("--encoder_freeze=false (the ablation) runs in simulation only, not on a robot")
         low, high = self.clip()
         check_number("clip_low", low, gt=0, le=1)
         check_number("clip_high", high, ge=1)
         return tasks
+
+    @property
+    def keeps_inputs(self) -> bool:  # type: ignore[override]
+        """Without the freeze the updates recompute the contexts, so the rollouts keep the encoders' inputs."""
+        return not self.encoder_freeze
 
     def clip(self) -> tuple[float, float]:
         low, high = default_clip(self.objective)

@@ -73,8 +73,8 @@ class Episode:
     contexts: Tensor  # (D, P, d) float32, encoder output the skill was sampled from
     tokens: Tensor  # (D, n_tokens) int64
     logprobs: Tensor  # (D, n_tokens) float32, log-probs under the distribution sampled from
-    # The encoders' preprocessed inputs of each decision, {key: (D, ...)}: kept only while the policy's encoders
-    # are not frozen (SPO then recomputes the contexts with gradients); empty otherwise.
+    # The encoders' preprocessed inputs of each decision, {key: (D, ...)}: kept only by an engine asked to keep them
+    # (SPO without the encoder freeze recomputes the contexts from them, with gradients); empty otherwise.
     inputs: dict[str, Tensor] = field(default_factory=dict)
 
 
@@ -147,10 +147,11 @@ class SkillPolicy(Protocol):
 class SkillSampler:
     """A policy and its processors: one batched skill decision from raw observations."""
 
-    def __init__(self, policy: SkillPolicy, preprocessor: Any, postprocessor: Any) -> None:
+    def __init__(self, policy: SkillPolicy, preprocessor: Any, postprocessor: Any, keep_inputs: bool = False) -> None:
         self.policy = policy
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
+        self.keep_inputs = keep_inputs
 
     @torch.no_grad()
     def decide(
@@ -162,7 +163,7 @@ class SkillSampler:
         generator: torch.Generator,
     ) -> tuple[Tensor, Tensor, Tensor, np.ndarray, dict[str, Tensor]]:
         """One batched decision for env ``rows``: contexts, tokens, log-probs (CPU), action chunks, and the
-        encoders' preprocessed inputs (CPU; only while the encoders are not frozen)."""
+        encoders' preprocessed inputs (CPU; only when ``keep_inputs``)."""
         raw: dict[str, Any] = {"agent_pos": obs["agent_pos"][rows]}
         if "pixels" in obs:
             raw["pixels"] = {cam: image[rows] for cam, image in obs["pixels"].items()}
@@ -180,8 +181,8 @@ class SkillSampler:
         chunk = self.policy.decode_skills(tokens, self.policy.config.n_action_steps)  # executed prefix only
         flat = self.postprocessor(chunk.reshape(-1, chunk.shape[-1]))
         chunks = flat.reshape(chunk.shape).float().cpu().numpy()
-        frozen = getattr(self.policy.config, "freeze_encoders", True)
-        inputs = {} if frozen else {k: v.cpu() for k, v in batch.items() if k in self.policy.config.input_features}
+        features = self.policy.config.input_features
+        inputs = {k: v.cpu() for k, v in batch.items() if k in features} if self.keep_inputs else {}
         return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks, inputs
 
 
@@ -244,8 +245,7 @@ class _PolicyController:
             "contexts": torch.stack(contexts),
             "tokens": torch.stack(tokens),
             "logprobs": torch.stack(logprobs),
-            "inputs": {key: torch.stack([d[key] for d in inputs]) for key in inputs[0]},
-        }
+        } | ({"inputs": {key: torch.stack([d[key] for d in inputs]) for key in inputs[0]}} if inputs[0] else {})
 
 
 def _episode(trace: Trace, describe: Callable[[str], str]) -> Episode:
@@ -278,9 +278,10 @@ class RolloutEngine:
         postprocessor: Any,
         backend: RolloutBackend,
         describe: Callable[[str], str],
+        keep_inputs: bool = False,
     ) -> None:
         self.policy = policy
-        self.sampler = SkillSampler(policy, preprocessor, postprocessor)
+        self.sampler = SkillSampler(policy, preprocessor, postprocessor, keep_inputs)
         self.backend = backend
         self.describe = describe
 
@@ -288,11 +289,11 @@ class RolloutEngine:
     def for_stage(
         cls, policy: SkillPolicy, preprocessor: Any, postprocessor: Any, settings: RolloutSettings
     ) -> RolloutEngine:
-        """The engine of a rollout stage: the backend of ``settings``' world, with the cameras the policy reads."""
+        """The engine of a rollout stage: the backend of ``settings``' world, with the cameras the policy reads,
+        keeping each decision's encoder inputs when the settings ask for them."""
         world = settings.world()
-        return cls(
-            policy, preprocessor, postprocessor, world.backend(settings, policy_cameras(policy)), world.task_description
-        )
+        backend = world.backend(settings, policy_cameras(policy))
+        return cls(policy, preprocessor, postprocessor, backend, world.task_description, settings.keeps_inputs)
 
     def rollout(
         self,

@@ -27,6 +27,7 @@ class RolloutSettings(Protocol):
     vectorization: str
 
     records_frames: bool  # the stage keeps every frame (else only decision frames need rendering)
+    keeps_inputs: bool  # each decision keeps the encoders' inputs (SPO without the encoder freeze)
 
     def world(self) -> World: ...
 
