@@ -125,10 +125,11 @@ def test_without_the_freeze_spo_updates_the_encoders_too_from_the_kept_inputs(rs
 
 
 def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_path):
-    cfg = make_cfg(rsft_policy, tmp_path, epochs=1, minibatch_trajectories=64, lr=0.0)
+    cfg = make_cfg(rsft_policy, tmp_path, epochs=1, minibatch_trajectories=64)
     engines: list[ScriptedEngine] = []
     history = spo.run_spo(cfg, make_engine=engine_factory(engines))
-    # With lr 0, π = π_old throughout: every ratio is exactly 1, nothing is clipped and the KL is 0.
+    # One epoch of one minibatch: its ratios are taken before its step, at π = π_old (recomputed after each
+    # iteration's collection): every ratio is exactly 1, nothing is clipped and the KL is 0.
     assert all(h["clip_fraction"] == 0.0 and abs(h["approx_kl"]) < 1e-6 for h in history)
     assert all(h["ratio_mean"] == pytest.approx(1.0) and h["updates"] == 1 for h in history)  # 1 epoch, 1 minibatch
 
