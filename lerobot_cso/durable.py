@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, check_output_dir
 
 PROGRESS_FILE = "progress.json"
 
@@ -184,6 +184,7 @@ class ResumableState:
 def output_lock(directory: Path) -> Iterator[None]:
     """Hold ``.<name>.lock`` beside ``directory`` while the block runs; raises ``UsageError`` naming the holder (pid,
     command, since when) when another process holds it. The lock file stays; the lock is released with the process."""
+    check_output_dir(directory)
     directory = directory.absolute()
     directory.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(directory.with_name(f".{directory.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)

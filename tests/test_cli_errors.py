@@ -243,6 +243,12 @@ def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_pa
                 pass
     with output_lock(out):  # released with its holder
         pass
+    (tmp_path / "a_file").write_text("not a directory")
+    with (
+        pytest.raises(UsageError, match="a_file is a file, not a directory$"),
+        output_lock(tmp_path / "a_file" / "out"),
+    ):
+        pass
     parent = (
         "import sys; from lerobot_cso.il import run_tied; "
         "run_tied([sys.executable, '-c', 'import os, time; print(os.getpid(), flush=True); time.sleep(120)'], {})"
