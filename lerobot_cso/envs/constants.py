@@ -1,6 +1,5 @@
 """MetaWorld v3 dimensions and timing shared by the env, its LeRobot config and the dataset writer."""
 
-STATE_DIM = 39  # hand xyz, gripper, 2 objects × (pos + quat), the previous frame's 18 values, goal xyz
 ACTION_DIM = 4  # Δxyz of the hand + gripper effort, in [-1, 1]
 FPS = 80  # control period: frame_skip 5 × 2.5 ms = 12.5 ms
 HORIZON = 500  # MetaWorld's max_path_length
@@ -10,4 +9,5 @@ IMAGE_SIZE = 128
 # frame (obs[0:4] ++ obs[18:22]), for policies that must find the objects in a camera image; "hand": LeRobot's
 # own MetaWorld format, hand xyz + gripper (obs[0:4]).
 STATE_LAYOUTS = {"full": 39, "proprio": 8, "hand": 4}
+STATE_DIM = STATE_LAYOUTS["full"]  # hand xyz, gripper, 2 objects × (pos + quat), the previous frame's 18, goal xyz
 CAMERAS = ("corner", "corner2", "corner3", "corner4", "topview", "behindGripper", "gripperPOV")
