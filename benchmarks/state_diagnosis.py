@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rollout_efficiency import pool_for
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.envs import seeds
 from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.rollout.engine import RolloutEngine, Sampling
-from lerobot_cso.rollout.pool import EnvPool
 
 
 def main() -> int:
@@ -37,6 +37,7 @@ def main() -> int:
     parser.add_argument("--max_steps", type=int, default=200)
     parser.add_argument("--num_envs", type=int, default=32)
     parser.add_argument("--seed", type=int, default=7, help="the rollouts' sampling seed")
+    parser.add_argument("--vectorization", default="processes")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -46,7 +47,7 @@ def main() -> int:
     first = len(seeds.TRAIN) // 2 - args.states
     states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, args.states)]
     sampling = Sampling(temperature=args.temperature, top_k=args.top_k)
-    pool = EnvPool(args.num_envs, max_steps=args.max_steps)
+    pool = pool_for(policy, args.num_envs, args.max_steps, args.vectorization)  # a camera policy's too
     with RolloutEngine(policy, pre, post, pool, task_description) as engine:
         result = engine.rollout(states, k=args.k, sampling=sampling, seed=args.seed, progress="diagnosis")
     report = {"policy": str(args.policy_path), "k": args.k, "sampling": vars(sampling), "tasks": {}}

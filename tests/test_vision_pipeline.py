@@ -33,7 +33,7 @@ il:
            image_keypoints: 8, image_embed_dim: 16, optimizer_lr: 0.001, optimizer_min_lr: 0.0001}}
 eval: {{episodes_per_task: 4, num_envs: 4, vectorization: sync, max_steps: 150, video_episodes: 2}}
 rsft: {{successes_per_task: 2, n_strikes: 4, states_per_round: 1, max_states_per_task: 20, num_envs: 4,
-       vectorization: sync, epochs: 1, batch_size: 16}}
+       vectorization: sync, epochs: 1, batch_size: 16, buffer_frames: decisions}}
 spo: {{iterations: 1, groups_per_iteration: 2, group_size: 4, epochs: 1, minibatch_trajectories: 4, num_envs: 4,
       vectorization: sync, max_draw_factor: 4, max_steps: {spo_steps}, sampling: {{temperature: 2.0}}}}
 """
@@ -76,11 +76,18 @@ def test_camera_demos_train_refine_and_evaluate_with_videos(tmp_path):
         "observation.images.corner2": [3, 32, 32],
     }
 
-    # The R-SFT buffer holds every frame of its episodes, and they are the camera's, not blanks.
+    # The R-SFT buffer (buffer_frames: decisions) holds the camera's decision frames, not blanks, each repeated
+    # over its skill's frames; the skill's next decision frame is a new render.
     buffer = LeRobotDataset("local/cso_rsft_buffer", root=run / "rsft" / "buffer")
     assert buffer.meta.camera_keys == ["observation.images.corner2"] and buffer.num_frames > 0
-    frames = torch.stack([buffer[i]["observation.images.corner2"] for i in range(0, buffer.num_frames, 7)])
+    items = [buffer[i] for i in range(buffer.meta.episodes["length"][0])]  # the first episode
+    frames = torch.stack([item["observation.images.corner2"] for item in items])
+    starts = [i for i, item in enumerate(items) if item["observation.skill_start"].item() == 1]
     assert frames.shape[1:] == (3, 32, 32) and frames.std() > 0.05
+    assert starts == list(range(0, len(items), 8)) and len(starts) >= 2
+    for first, end in zip(starts, [*starts[1:], len(items)], strict=True):
+        assert all(torch.equal(frames[first], frames[t]) for t in range(first, end))
+    assert not torch.equal(frames[starts[0]], frames[starts[-1]])  # the hand moved between the decisions
     assert tuple(buffer.meta.features["observation.state"]["shape"]) == (8,)
 
     # With the freeze (Algorithm 1, line 11), SPO leaves the encoders bit-identical while it moves the prior.

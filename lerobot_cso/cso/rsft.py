@@ -15,6 +15,9 @@ task is full, the journal is materialised as the **success buffer**, a LeRobotDa
 ``<output_dir>/buffer`` with the executed actions, the observations, and per frame the tokens of the skill
 being executed (``observation.skill_tokens``), whether the frame is the one the skill was sampled from
 (``observation.skill_start``) and the decision index (``observation.skill_step``), plus episode metadata.
+With ``buffer_frames: decisions`` a camera world renders only the decision frames, the ones the fine-tune reads;
+the buffer's other frames then repeat the image of their skill's decision frame (``observation.skill_start``
+marks the true ones).
 
 **Fine-tuning (Eq. 6).** The whole policy is trained on the stored (observation, skill) pairs of the decision
 frames (uniformly, or with ``advantage_weighted`` each drawn in proportion to its state's Eq. 8 advantage) the
@@ -54,6 +57,7 @@ from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.stage import CheckpointStage, without_added_settings
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
+BUFFER_FRAMES = ("all", "decisions")
 
 
 def _rsft_sampling() -> Sampling:
@@ -80,6 +84,10 @@ class RSFTConfig(TrainingStageConfig):
     # successes would be dropped anyway; in simulation a state's attempts mostly run at once, so it saves little.
     stop_state_at_cap: bool = False
     states_per_round: int = 2  # new initial states per unfinished task per batched rollout call
+    # Which camera frames the buffer holds: "all" (every frame rendered), or "decisions": only the frames a skill is
+    # sampled from are rendered (the only ones Eq. 6 reads), each repeated over its skill's frames. Rendering is
+    # most of a camera collection's time (≈ 10 ms a 64² frame against 0.25 ms a MuJoCo step, docs/cso-on-cpu.md).
+    buffer_frames: str = "all"
     max_states_per_task: int = 2000
     seed: int = 0
     # Fine-tuning (Eq. 6, App. E.2) with the policy's own optimizer and scheduler presets (lerobot-train's),
@@ -102,8 +110,16 @@ class RSFTConfig(TrainingStageConfig):
     push_to_hub: bool = False
     repo_id: str = "local/cso_rsft_buffer"
 
+    @property
+    def records_frames(self) -> bool:  # type: ignore[override]
+        return self.buffer_frames == "all"
+
     def validate(self) -> list[str]:
         tasks = super().validate()
+        if self.buffer_frames not in BUFFER_FRAMES:
+            raise UsageError(f"buffer_frames must be one of {', '.join(BUFFER_FRAMES)}, got '{self.buffer_frames}'")
+        if self.robot is not None and not self.records_frames:
+            raise UsageError("--buffer_frames=decisions is for simulated worlds: a robot's cameras give every frame")
         for name in ("successes_per_task", "n_strikes", "states_per_round", "max_states_per_task", "batch_size"):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -124,7 +140,15 @@ class RSFTConfig(TrainingStageConfig):
 
     def spec(self) -> dict[str, Any]:
         """Settings that define the buffer; a journal made with other settings is refused."""
-        keys = ("tasks", "successes_per_task", "n_strikes", "max_successes_per_state", "stop_state_at_cap", "seed")
+        keys = (
+            "tasks",
+            "successes_per_task",
+            "n_strikes",
+            "max_successes_per_state",
+            "stop_state_at_cap",
+            "buffer_frames",
+            "seed",
+        )
         spec = {k: getattr(self, k) for k in keys}
         spec |= {"sampling": asdict(self.sampling), "policy": str(self.policy.pretrained_path)}
         return without_added_settings(spec)  # journals from before a later setting existed stay valid
@@ -217,8 +241,15 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
                 progress.update(1)
 
         stop_after = cfg.max_successes_per_state if cfg.stop_state_at_cap else None
+        filmed = () if cfg.records_frames else range(len(requests))  # decision frames, kept in every trace
         result = engine.rollout(
-            requests, k=cfg.n_strikes, sampling=sampling, seed=round_seed, on_episode=keep, stop_after=stop_after
+            requests,
+            k=cfg.n_strikes,
+            sampling=sampling,
+            seed=round_seed,
+            on_episode=keep,
+            stop_after=stop_after,
+            keep_frames=filmed,
         )
         if main:
             for group in result.groups():
