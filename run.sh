@@ -40,7 +40,7 @@ setup() {
     fi
     echo "[setup] installing lerobot_policy_cso (with LIBERO and its assets) and lerobot_robot_piper (first time: a few minutes)" >&2
     "$VENV/bin/python" -m pip install -q --upgrade pip >&2
-    "$VENV/bin/python" -m pip install -q -e "./hardware[lerobot]" -e ".[test,libero]" >&2
+    "$VENV/bin/python" -m pip install -q -e "./hardware[lerobot,twin]" -e ".[test,libero]" >&2
     echo "$want" > "$stamp"
 }
 

@@ -1,12 +1,14 @@
-"""LeRobot plugin for the AgileX PiPER: robot ``piper_follower`` and teleoperator ``piper_leader``.
+"""LeRobot plugin for the AgileX PiPER: robot ``piper_follower``, teleoperator ``piper_leader`` and the
+twin's camera ``piper_twin``.
 
-LeRobot imports this package by its distribution name; importing it registers both config types and
-changes nothing else in the process.
+LeRobot imports this package by its distribution name; importing it registers the config types and
+changes nothing else in the process (the twin camera's MuJoCo is imported only when one connects).
 """
 
 from .config_piper_follower import PiperFollowerConfig
 from .config_piper_leader import PiperLeaderConfig
+from .config_piper_twin_camera import PiperTwinCameraConfig
 from .piper_follower import PiperFollower
 from .piper_leader import PiperLeader
 
-__all__ = ["PiperFollower", "PiperFollowerConfig", "PiperLeader", "PiperLeaderConfig"]
+__all__ = ["PiperFollower", "PiperFollowerConfig", "PiperLeader", "PiperLeaderConfig", "PiperTwinCameraConfig"]

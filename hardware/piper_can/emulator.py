@@ -20,7 +20,7 @@ import can
 
 from .clock import SYSTEM_CLOCK, Clock
 from .codec import Frame
-from .firmware import EmulatorConfig, PiperFirmware
+from .firmware import EmulatorConfig, PiperFirmware, Plant
 
 log = logging.getLogger(__name__)
 
@@ -28,12 +28,19 @@ _MAX_REAL_TIME_STEP_S = 0.1
 
 
 class PiperEmulator:
-    """A ``PiperFirmware`` on ``bus``: received frames go to ``handle``, its frames go on the bus."""
+    """A ``PiperFirmware`` on ``bus``: received frames go to ``handle``, its frames go on the bus. With a
+    ``plant`` (``piper_twin``'s physics) the firmware's motors are that plant's."""
 
-    def __init__(self, bus: can.BusABC, config: EmulatorConfig | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: EmulatorConfig | None = None,
+        clock: Clock = SYSTEM_CLOCK,
+        plant: Plant | None = None,
+    ) -> None:
         self.bus = bus
         self.clock = clock
-        self.firmware = PiperFirmware(config)
+        self.firmware = PiperFirmware(config, plant)
         self._rng = random.Random(self.firmware.config.seed)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()

@@ -3,6 +3,10 @@
 Example (another process then connects as it would to ``can0``)::
 
     piper-emulator --interface=udp_multicast --channel=239.74.0.1 --port=43113
+
+With ``--physics`` (the ``twin`` extra: ``mujoco``, ``piper-control``) the firmware drives ``piper_twin``'s
+MuJoCo arm in the scene ``--scene`` placed from ``--scene-seed``, and publishes the world state for the
+``piper_twin`` cameras on ``--state-group``/``--state-port``.
 """
 
 from __future__ import annotations
@@ -11,11 +15,12 @@ import argparse
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from typing import NoReturn
 
 from .emulator import PiperEmulator
 from .errors import PiperError
-from .firmware import EmulatorConfig
+from .firmware import EmulatorConfig, Plant
 from .link import open_bus
 
 PROG = "piper-emulator"
@@ -64,7 +69,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--initial-pose", type=_pose, help="6 comma-separated joint angles in radians")
     p.add_argument("--duration", type=_positive, help="exit after this many seconds (default: until signalled)")
     p.add_argument("--strict", action="store_true", help="log every ignored or rejected frame")
+    p.add_argument("--physics", action="store_true", help="drive the MuJoCo twin (needs the 'twin' extra)")
+    p.add_argument("--scene", default="table", help="twin scene: table, press_button, cube_in_bowl")
+    p.add_argument("--scene-seed", type=int, default=0, help="seed of the twin scene's object placement")
+    p.add_argument("--state-group", default="239.74.1.1", help="multicast group of the twin's world state")
+    p.add_argument("--state-port", type=int, default=43200, help="UDP port of the twin's world state")
     return p
+
+
+def _twin(args: argparse.Namespace) -> tuple[Plant, Callable[[], None]]:
+    """The physics plant for ``--physics``, publishing its world state; and how to close it."""
+    # Imported here: the twin's dependencies are an optional extra.
+    from piper_twin.plant import TwinPlant
+    from piper_twin.state_channel import StatePublisher
+
+    plant = TwinPlant(args.scene, args.scene_seed, args.initial_pose)
+    publisher = StatePublisher(args.state_group, args.state_port)
+    plant.listeners.append(lambda p: publisher.publish(p.snapshot()))
+    return plant, publisher.close
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,24 +102,35 @@ def main(argv: list[str] | None = None) -> int:
         initial_pose_rad=args.initial_pose,
         strict=args.strict,
     )
+    plant: Plant | None = None
+    close_plant: Callable[[], None] = lambda: None  # noqa: E731
+    if args.physics:
+        try:
+            plant, close_plant = _twin(args)
+        except (ImportError, ValueError) as exc:
+            print(f"{PROG}: error: --physics: {exc}", file=sys.stderr)
+            return 2
     options = {} if args.port is None else {"port": args.port}
     try:
         bus = open_bus(args.interface, args.channel, args.bitrate, options)
     except PiperError as exc:
+        close_plant()
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
     done = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: done.set())
-    emulator = PiperEmulator(bus, config)
+    emulator = PiperEmulator(bus, config, plant=plant)
     emulator.start()
     port = f" port {args.port}" if args.port is not None else ""
-    print(f"{PROG}: {args.role} ready on {args.interface}:{args.channel}{port}", flush=True)
+    twin = f" (physics: scene {args.scene}, seed {args.scene_seed})" if args.physics else ""
+    print(f"{PROG}: {args.role} ready on {args.interface}:{args.channel}{port}{twin}", flush=True)
     try:
         done.wait(args.duration)
     finally:
         emulator.stop()
         bus.shutdown()
+        close_plant()
     return 0
 
 

@@ -13,6 +13,10 @@ no enable for a joint past its limit; 0x475 clear-error; 0x474 / 0x475 joint spe
 caps; 0x477 / 0x47A / 0x47B collision-protection levels; firmware-version and limit replies; host
 frames lost on the firmware's side (``lose_next``). Leader role (0x470 0xFA): emits
 0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host commands.
+
+The joints and the gripper move kinematically unless a ``Plant`` is given (``piper_twin``'s physics): then
+the firmware's motion planner produces setpoints and drive modes (servo, limp when disabled, damped when
+e-stopped) and reports whatever positions the plant reaches.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import math
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 from .codec import (
     ACCEL_NO_CHANGE,
@@ -112,6 +116,38 @@ def scripted_leader(t: float) -> tuple[tuple[float, ...], float]:
     return joints, 0.035 + 0.025 * math.sin(2 * math.pi * 0.2 * t)
 
 
+Drive = Literal["servo", "limp", "damped"]
+
+
+@dataclass(frozen=True, slots=True)
+class PlantCommand:
+    """What the firmware asks of the motors for one step: the planned setpoints (rad, m), their planned
+    velocities, and per motor ``servo`` (track), ``limp`` (no torque) or ``damped`` (e-stop brake)."""
+
+    setpoints_rad: tuple[float, ...]
+    velocities_rad_s: tuple[float, ...]
+    drives: tuple[Drive, ...]
+    gripper_setpoint_m: float
+    gripper_drive: Drive
+
+
+@dataclass(frozen=True, slots=True)
+class PlantState:
+    """Where the motors are: joint angles (rad), joint velocities (rad/s), gripper opening (m)."""
+
+    joints_rad: tuple[float, ...]
+    velocities_rad_s: tuple[float, ...]
+    gripper_m: float
+
+
+class Plant(Protocol):
+    """The physical arm the firmware drives (``piper_twin.plant.TwinPlant``)."""
+
+    def state(self) -> PlantState: ...
+
+    def step(self, dt: float, command: PlantCommand) -> PlantState: ...
+
+
 @dataclass
 class EmulatorConfig:
     """Behaviour of the simulated firmware (and, for ``rate_scale`` / ``jitter_s``, of its bus runner)."""
@@ -170,6 +206,7 @@ class LoggedFrame:
 class _Joint:
     position: float
     target: float
+    setpoint: float  # the planner's output: the position itself on the kinematic model
     velocity: float = 0.0
     enabled: bool = False
     fault_bits: int = 0
@@ -186,6 +223,7 @@ class _PendingEnable:
 class _Gripper:
     opening: float = 0.0
     target: float = 0.0
+    setpoint: float = 0.0
     effort: float = 0.0
     enabled: bool = False
     zero_offset: float = 0.0
@@ -194,10 +232,12 @@ class _Gripper:
 
 class PiperFirmware:
     """The firmware of one simulated PiPER. Inspect ``joints_rad``, ``enabled``, ``gripper_m``,
-    ``ctrl_mode``, ``ignored`` (reason -> count) and ``frame_log`` in tests."""
+    ``ctrl_mode``, ``ignored`` (reason -> count) and ``frame_log`` in tests. With ``plant`` the motors are
+    that plant's (the pose at power-on is the plant's, not ``initial_pose_rad``)."""
 
-    def __init__(self, config: EmulatorConfig | None = None) -> None:
+    def __init__(self, config: EmulatorConfig | None = None, plant: Plant | None = None) -> None:
         self.config = config or EmulatorConfig()
+        self.plant = plant
         self.frame_log: deque[LoggedFrame] = deque(maxlen=self.config.log_size)
         self.ignored: Counter[str] = Counter()
         self.drop_ids: set[int] = set()
@@ -248,12 +288,16 @@ class PiperFirmware:
         """Power off and on: everything back to the initial state; a pending role change applies."""
         cfg = self.config
         pose = cfg.initial_pose_rad or cfg.rest_pose_rad
+        gripper = 0.0
+        if self.plant is not None:
+            state = self.plant.state()
+            pose, gripper = state.joints_rad, state.gripper_m
         if len(pose) != NUM_JOINTS:
             raise ValueError(f"the emulator pose needs {NUM_JOINTS} angles, got {len(pose)}")
         self.role = self._pending_role or cfg.role
         self._pending_role = None
-        self._joints = [_Joint(p, p, enabled=cfg.start_enabled) for p in pose]
-        self._gripper = _Gripper(enabled=cfg.start_enabled)
+        self._joints = [_Joint(p, p, p, enabled=cfg.start_enabled) for p in pose]
+        self._gripper = _Gripper(gripper, gripper, gripper, enabled=cfg.start_enabled)
         self._pending: list[_PendingEnable] = []
         self._latched: dict[int, tuple[float, float]] = {}  # JointCtrl pairs by first joint
         self._rejected: set[int] = set()
@@ -311,9 +355,12 @@ class PiperFirmware:
         self._frozen = self._feedback_frames(low_speed=True) if frozen else None
 
     def set_position(self, joint: int, position_rad: float) -> None:
-        """Force a joint (e.g. pushed by hand past a limit); its target follows."""
+        """Force a joint (e.g. pushed by hand past a limit); its target follows. Kinematic model only."""
+        if self.plant is not None:
+            raise RuntimeError("a plant's joints move by physics only")
         self._joints[joint - 1].position = position_rad
         self._joints[joint - 1].target = position_rad
+        self._joints[joint - 1].setpoint = position_rad
 
     def set_enabled(self, joint: int, enabled: bool) -> None:
         """Force a joint's driver on or off (e.g. a driver that cut out), without any host frame."""
@@ -551,8 +598,11 @@ class PiperFirmware:
             raise ValueError(f"dt must not be negative, got {dt}")
         self.time_s += dt
         self._apply_due_events()
-        self._move_joints(dt)
-        self._move_gripper(dt)
+        if self.plant is None:
+            self._move_joints(dt)
+            self._move_gripper(dt)
+        else:
+            self._drive_plant(self.plant, dt)
         return self._emit(self._cycle_frames())
 
     def _apply_due_events(self) -> None:
@@ -572,12 +622,23 @@ class PiperFirmware:
                     joint.enabled = p.enable
                     joint.target = joint.position
 
+    def _speed(self, j: int) -> float:
+        high_follow = self.mit_mode == MIT_MODE_HIGH_FOLLOW
+        speed_all = self.config.max_speed_rad_s * (1.0 if high_follow else self.speed_percent / 100)
+        return min(speed_all, self.joint_max_speed_rad_s[j])
+
+    def _plan(self, j: int, joint: _Joint, dt: float) -> float:
+        """The planner's next setpoint of an enabled joint: at the mode's speed, or high-follow tracking."""
+        speed = self._speed(j)
+        if self.mit_mode == MIT_MODE_HIGH_FOLLOW:
+            alpha = 1.0 - math.exp(-dt / self.config.follow_time_constant_s)
+            setpoint = joint.setpoint + clamp((joint.target - joint.setpoint) * alpha, -speed * dt, speed * dt)
+            return joint.target if abs(joint.target - setpoint) < _REACHED_TOLERANCE_RAD else setpoint
+        return _toward(joint.setpoint, joint.target, speed * dt)
+
     def _move_joints(self, dt: float) -> None:
         cfg = self.config
-        high_follow = self.mit_mode == MIT_MODE_HIGH_FOLLOW
-        speed_all = cfg.max_speed_rad_s * (1.0 if high_follow else self.speed_percent / 100)
         for j, joint in enumerate(self._joints):
-            speed = min(speed_all, self.joint_max_speed_rad_s[j])
             before = joint.position
             if self._estop:
                 joint.position = _toward(joint.position, cfg.rest_pose_rad[j], cfg.estop_sag_rad_s * dt)
@@ -586,20 +647,43 @@ class PiperFirmware:
                 if cfg.disabled_behaviour == "drop":
                     joint.position = _toward(joint.position, cfg.rest_pose_rad[j], cfg.drop_rad_s * dt)
                 joint.target = joint.position
-            elif high_follow:
-                alpha = 1.0 - math.exp(-dt / cfg.follow_time_constant_s)
-                delta = clamp((joint.target - joint.position) * alpha, -speed * dt, speed * dt)
-                joint.position += delta
-                if abs(joint.target - joint.position) < _REACHED_TOLERANCE_RAD:
-                    joint.position = joint.target
             else:
-                joint.position = _toward(joint.position, joint.target, speed * dt)
+                joint.position = self._plan(j, joint, dt)
+            joint.setpoint = joint.position
             joint.velocity = (joint.position - before) / dt if dt > 0 else 0.0
 
     def _move_gripper(self, dt: float) -> None:
         g = self._gripper
         if g.enabled and not self._estop:
             g.opening = _toward(g.opening, g.target, self.config.gripper_speed_m_s * dt)
+        g.setpoint = g.opening
+
+    def _drive_plant(self, plant: Plant, dt: float) -> None:
+        """One step of the plant: enabled motors servo to the planned setpoints; disabled ones go limp (the
+        arm falls), an e-stop brakes them all; the plan of a motor not servoing restarts where it is."""
+        setpoints, velocities, drives = [], [], []
+        for j, joint in enumerate(self._joints):
+            if self._estop or not joint.enabled:
+                joint.setpoint = joint.target = joint.position
+                velocities.append(0.0)
+                drives.append("damped" if self._estop else "limp")
+            else:
+                before = joint.setpoint
+                joint.setpoint = self._plan(j, joint, dt)
+                velocities.append((joint.setpoint - before) / dt if dt > 0 else 0.0)
+                drives.append("servo")
+            setpoints.append(joint.setpoint)
+        g = self._gripper
+        gripper_drive: Drive = "servo" if g.enabled and not self._estop else "limp"
+        if gripper_drive == "servo":
+            g.setpoint = _toward(g.setpoint, g.target, self.config.gripper_speed_m_s * dt)
+        else:
+            g.setpoint = g.target = g.opening
+        command = PlantCommand(tuple(setpoints), tuple(velocities), tuple(drives), g.setpoint, gripper_drive)
+        state = plant.step(dt, command)
+        for joint, position, velocity in zip(self._joints, state.joints_rad, state.velocities_rad_s, strict=True):
+            joint.position, joint.velocity = position, velocity
+        g.opening = state.gripper_m
 
     # ---------------------------------------------------------------------------- emission
     def _emit(self, frames: list[Frame]) -> list[Frame]:
@@ -643,7 +727,7 @@ class PiperFirmware:
         return frames
 
     def _status(self) -> ArmStatus:
-        reached = all(abs(j.target - j.position) < _REACHED_TOLERANCE_RAD for j in self._joints)
+        reached = all(abs(j.target - j.setpoint) < _REACHED_TOLERANCE_RAD for j in self._joints)
         angle_limit_mask = 0
         for j in range(NUM_JOINTS):
             if not self._within_limits(j + 1):

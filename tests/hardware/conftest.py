@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
 from piper_rig import Rig, make_rig
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # the twin's cameras render offscreen (before mujoco is imported)
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ import can
 from piper_can.clock import SYSTEM_CLOCK, Clock, SimulatedClock
 from piper_can.driver import DriverConfig, PiperDriver
 from piper_can.emulator import PiperEmulator
-from piper_can.firmware import EmulatorConfig, PiperFirmware
+from piper_can.firmware import EmulatorConfig, PiperFirmware, Plant
 
 
 def unique_virtual_channel() -> str:
@@ -82,6 +82,7 @@ def make_rig(
     connect: bool = True,
     enable: bool = True,
     real_time: bool = False,
+    plant: Plant | None = None,
     **driver_options,
 ) -> Iterator[Rig]:
     channel = unique_virtual_channel()
@@ -89,7 +90,7 @@ def make_rig(
     bus_options = {} if real_time else {"preserve_timestamps": True}  # frames keep their simulated times
     emulator_bus = can.Bus(interface="virtual", channel=channel, **bus_options)
     monitor = can.Bus(interface="virtual", channel=channel, **bus_options)
-    emulator = PiperEmulator(emulator_bus, emulator_config, clock)
+    emulator = PiperEmulator(emulator_bus, emulator_config, clock, plant)
     if real_time:
         emulator.start()
         # The emulator shares this process (and the GIL) with the driver and the test, so a busy machine

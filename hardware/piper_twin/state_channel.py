@@ -1,0 +1,119 @@
+"""The twin's world state between processes: the emulator publishes it, cameras (and scene operators) read it.
+
+One UDP multicast datagram per publication on the loopback (as python-can's ``udp_multicast`` carries CAN):
+the scene's name and seed, the simulated time, the host's wall-clock time it was taken at (the group never
+leaves this host), whether the task has succeeded, and the MuJoCo state a renderer needs (``qpos``, mocap
+poses). Every receiver on the group gets every datagram; a receiver keeps
+only the newest. The CAN bus stays the arm's only control path: nothing here can move the arm.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_GROUP = "239.74.1.1"
+DEFAULT_PORT = 43200
+_MAGIC = b"PTW1"
+_HEADER = struct.Struct("<4s32sqddBHH")  # magic, scene, seed, time, wall time, success, nq, nmocap
+_MAX_DATAGRAM = 65_000
+
+
+@dataclass(frozen=True)
+class TwinSnapshot:
+    """The twin's state at ``time_s`` (simulated seconds since the emulator started), taken at
+    ``wall_time_s`` (``time.time()``)."""
+
+    scene: str
+    seed: int
+    time_s: float
+    wall_time_s: float
+    success: bool
+    qpos: np.ndarray
+    mocap_pos: np.ndarray  # (nmocap, 3)
+    mocap_quat: np.ndarray  # (nmocap, 4)
+
+    def encode(self) -> bytes:
+        name = self.scene.encode("ascii")
+        if len(name) > 32:
+            raise ValueError(f"scene name longer than 32 bytes: {self.scene!r}")
+        nq, nmocap = len(self.qpos), len(self.mocap_pos)
+        header = _HEADER.pack(_MAGIC, name, self.seed, self.time_s, self.wall_time_s, self.success, nq, nmocap)
+        arrays = np.concatenate([self.qpos, self.mocap_pos.ravel(), self.mocap_quat.ravel()]).astype("<f8")
+        return header + arrays.tobytes()
+
+    @classmethod
+    def decode(cls, datagram: bytes) -> TwinSnapshot:
+        magic, name, seed, time_s, wall_time_s, success, nq, nmocap = _HEADER.unpack_from(datagram)
+        if magic != _MAGIC:
+            raise ValueError("not a PiPER twin state datagram")
+        values = np.frombuffer(datagram, "<f8", offset=_HEADER.size)
+        if len(values) != nq + 7 * nmocap:
+            raise ValueError(f"truncated twin state datagram ({len(datagram)} bytes)")
+        return cls(
+            name.rstrip(b"\x00").decode("ascii"),
+            seed,
+            time_s,
+            wall_time_s,
+            bool(success),
+            values[:nq].copy(),
+            values[nq : nq + 3 * nmocap].reshape(nmocap, 3).copy(),
+            values[nq + 3 * nmocap :].reshape(nmocap, 4).copy(),
+        )
+
+
+class StatePublisher:
+    """Sends snapshots to the multicast group (loopback only: TTL 0 keeps them on this host)."""
+
+    def __init__(self, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
+        self.address = (group, port)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+
+    def publish(self, snapshot: TwinSnapshot) -> None:
+        try:
+            self._sock.sendto(snapshot.encode(), self.address)
+        except OSError:
+            pass  # a full socket buffer drops one snapshot; the next one carries the newer state
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class StateReceiver:
+    """Joins the group; ``latest()`` drains what arrived and returns the newest snapshot seen so far."""
+
+    def __init__(self, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
+        self.address = (group, port)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((group, port))
+        membership = socket.inet_aton(group) + socket.inet_aton("127.0.0.1")
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+        sock.setblocking(False)
+        self._sock = sock
+        self._latest: TwinSnapshot | None = None
+
+    def latest(self) -> TwinSnapshot | None:
+        while True:
+            try:
+                datagram = self._sock.recv(_MAX_DATAGRAM)
+            except BlockingIOError:
+                return self._latest
+            self._latest = TwinSnapshot.decode(datagram)
+
+    def wait(self, timeout_s: float) -> TwinSnapshot | None:
+        """The newest snapshot, waiting up to ``timeout_s`` for a first one."""
+        deadline = time.monotonic() + timeout_s
+        while (snapshot := self.latest()) is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        return snapshot
+
+    def close(self) -> None:
+        self._sock.close()
