@@ -5,8 +5,9 @@ Example (another process then connects as it would to ``can0``)::
     piper-emulator --interface=udp_multicast --channel=239.74.0.1 --port=43113
 
 With ``--physics`` (the ``twin`` extra: ``mujoco``, ``piper-control``) the firmware drives ``piper_twin``'s
-MuJoCo arm in the scene ``--scene`` placed from ``--scene-seed``, and publishes the world state for the
-``piper_twin`` cameras on ``--state-group``/``--state-port``.
+MuJoCo arm in the scene ``--scene`` placed from ``--scene-seed``, publishes the world state for the
+``piper_twin`` cameras on ``--state-group``/``--state-port``, and places the objects anew for the seed a
+``piper_twin.state_channel.request_placement`` asks for (on ``--state-port`` + 1).
 """
 
 from __future__ import annotations
@@ -78,15 +79,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _twin(args: argparse.Namespace) -> tuple[Plant, Callable[[], None]]:
-    """The physics plant for ``--physics``, publishing its world state; and how to close it."""
+    """The physics plant for ``--physics``, publishing its world state and placing objects on request; and
+    how to close it."""
     # Imported here: the twin's dependencies are an optional extra.
     from piper_twin.plant import TwinPlant
-    from piper_twin.state_channel import StatePublisher
+    from piper_twin.state_channel import PlacementRequests, StatePublisher
 
     plant = TwinPlant(args.scene, args.scene_seed, args.initial_pose)
     publisher = StatePublisher(args.state_group, args.state_port)
-    plant.listeners.append(lambda p: publisher.publish(p.snapshot()))
-    return plant, publisher.close
+    requests = PlacementRequests(args.state_group, args.state_port)
+
+    def after_step(twin: TwinPlant) -> None:
+        if (seed := requests.poll()) is not None:
+            twin.place(seed)
+        publisher.publish(twin.snapshot())
+
+    plant.listeners.append(after_step)
+
+    def close() -> None:
+        publisher.close()
+        requests.close()
+
+    return plant, close
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -108,13 +108,14 @@ def _add_arm_geometry(spec: mujoco.MjSpec) -> None:
         contype=ARM_CONTACT[0],
         conaffinity=ARM_CONTACT[1],
     )
-    for name in ("finger0", "finger1"):
-        # Finger frame: the tip at the origin, the finger along -y, its inner face at z = 0.
+    for name, along in (("finger0", -1.0), ("finger1", 1.0)):
+        # Finger frame: the tip at the origin, the finger back toward the palm along y (-y for finger0, +y for
+        # the mirrored finger1), its inner face at z = 0.
         _geom(
             spec.body(name),
             mujoco.mjtGeom.mjGEOM_BOX,
             (0.01, 0.028, 0.006),
-            pos=[0, -0.028, -0.006],
+            pos=[0, along * 0.028, -0.006],
             rgba=_DARK_RGBA,
             friction=[1.5, 0.01, 0.001],
             condim=4,

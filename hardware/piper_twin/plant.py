@@ -62,8 +62,13 @@ class TwinPlant:
         stops = self.model.jnt_range[[self.model.joint(n).id for n in JOINT_NAMES]]
         self.data.qpos[self._qpos] = np.clip(pose, stops[:, 0], stops[:, 1])
         self.data.qpos[self._fingers_qpos] = gripper_m / 2
+        self.place(seed)
+
+    def place(self, seed: int) -> None:
+        """Place the scene's objects for ``seed`` (the arm stays as it is); the task is not done yet."""
         self.seed = seed
         self.scene.place(self.model, self.data, seed)
+        self._succeeded = False
         mujoco.mj_forward(self.model, self.data)
 
     @property
@@ -71,7 +76,9 @@ class TwinPlant:
         return float(self.data.time)
 
     def succeeded(self) -> bool:
-        return self.scene.succeeded(self.model, self.data)
+        """Whether the task succeeded at some step since the objects were placed (a pressed button counts
+        after it springs back)."""
+        return self._succeeded or self.scene.succeeded(self.model, self.data)
 
     def snapshot(self) -> TwinSnapshot:
         """The world state a renderer needs, with the scene's verdict."""
@@ -124,6 +131,7 @@ class TwinPlant:
             d.qfrc_applied[:] = 0.0
             d.qfrc_applied[compensated] = d.qfrc_bias[compensated]
             mujoco.mj_step2(m, d)
+        self._succeeded = self.succeeded()
         for listener in self.listeners:
             listener(self)
         return self.state()

@@ -20,8 +20,9 @@ from .model import WORLD_CONTACT, arm_spec
 def _body(parent: mujoco.MjsBody, name: str, pos: tuple[float, ...], mass: float = 0.0) -> mujoco.MjsBody:
     body = parent.add_body()
     body.name, body.pos = name, list(pos)
-    if mass:
+    if mass:  # centred (an unset ipos is NaN in a spec)
         body.mass, body.inertia, body.explicitinertial = mass, [mass * 1e-4] * 3, True
+        body.ipos, body.iquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
     return body
 
 
@@ -83,6 +84,8 @@ class PressButton(Scene):
         joint.range, joint.limited = [-self.travel_m, 0.0], mujoco.mjtLimited.mjLIMITED_TRUE
         joint.stiffness, joint.damping = 150.0, 1.0  # ~1 N to hold it down
         _geom(cap, mujoco.mjtGeom.mjGEOM_CYLINDER, (0.02, 0.008), (0, 0, 0.008), (0.85, 0.1, 0.1, 1))
+        inside = spec.add_exclude()  # the cap sinks into its base (a mocap body counts as the world's)
+        inside.bodyname1, inside.bodyname2 = "button_base", "button_cap"
 
     def place(self, model: mujoco.MjModel, data: mujoco.MjData, seed: int) -> None:
         xy = _uniform_xy(np.random.default_rng(seed), self.x_range, self.y_range)
@@ -113,7 +116,9 @@ class CubeInBowl(Scene):
         bowl = _body(spec.worldbody, "bowl", (0.3, 0.15, 0.0))
         bowl.mocap = True
         rgba = (0.2, 0.45, 0.8, 1)
-        _geom(bowl, mujoco.mjtGeom.mjGEOM_CYLINDER, (self.bowl_radius_m, 0.003), (0, 0, 0.003), rgba)
+        # The floor: a box (a thin cylinder's contact with a box lets the cube sink through it).
+        half = self.bowl_radius_m / math.sqrt(2)
+        _geom(bowl, mujoco.mjtGeom.mjGEOM_BOX, (half, half, 0.003), (0, 0, 0.003), rgba)
         walls = 16
         half_len = self.bowl_radius_m * math.tan(math.pi / walls) + 0.003
         for k in range(walls):

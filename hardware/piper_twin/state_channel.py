@@ -1,5 +1,8 @@
 """The twin's world state between processes: the emulator publishes it, cameras (and scene operators) read it.
 
+Back the other way, on ``port + 1``: a request to place the scene's objects for another seed (what a person
+does between demonstrations: put the cube back). It moves objects only, never the arm.
+
 One UDP multicast datagram per publication on the loopback (as python-can's ``udp_multicast`` carries CAN):
 the scene's name and seed, the simulated time, the host's wall-clock time it was taken at (the group never
 leaves this host), whether the task has succeeded, and the MuJoCo state a renderer needs (``qpos``, mocap
@@ -21,6 +24,8 @@ DEFAULT_PORT = 43200
 _MAGIC = b"PTW1"
 _HEADER = struct.Struct("<4s32sqddBHH")  # magic, scene, seed, time, wall time, success, nq, nmocap
 _MAX_DATAGRAM = 65_000
+_PLACE = struct.Struct("<4sq")  # magic, seed
+_PLACE_MAGIC = b"PTP1"
 
 
 @dataclass(frozen=True)
@@ -66,15 +71,32 @@ class TwinSnapshot:
         )
 
 
+def _sender() -> socket.socket:
+    """A multicast sender that stays on this host (TTL 0, loopback)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+    return sock
+
+
+def _receiver(group: str, port: int) -> socket.socket:
+    """A non-blocking member of ``group`` on ``port`` (every member gets every datagram)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((group, port))
+    membership = socket.inet_aton(group) + socket.inet_aton("127.0.0.1")
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+    sock.setblocking(False)
+    return sock
+
+
 class StatePublisher:
-    """Sends snapshots to the multicast group (loopback only: TTL 0 keeps them on this host)."""
+    """Sends snapshots to the multicast group."""
 
     def __init__(self, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
         self.address = (group, port)
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
-        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
-        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-        self._sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        self._sock = _sender()
 
     def publish(self, snapshot: TwinSnapshot) -> None:
         try:
@@ -86,18 +108,41 @@ class StatePublisher:
         self._sock.close()
 
 
+def request_placement(seed: int, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
+    """Ask the twin on ``group``/``port`` to place its scene's objects for ``seed``."""
+    sock = _sender()
+    try:
+        sock.sendto(_PLACE.pack(_PLACE_MAGIC, seed), (group, port + 1))
+    finally:
+        sock.close()
+
+
+class PlacementRequests:
+    """The twin's side of ``request_placement``: ``poll()`` returns the newest requested seed, if any."""
+
+    def __init__(self, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
+        self._sock = _receiver(group, port + 1)
+
+    def poll(self) -> int | None:
+        seed = None
+        while True:
+            try:
+                datagram = self._sock.recv(_MAX_DATAGRAM)
+            except BlockingIOError:
+                return seed
+            if len(datagram) == _PLACE.size and datagram[:4] == _PLACE_MAGIC:
+                seed = _PLACE.unpack(datagram)[1]
+
+    def close(self) -> None:
+        self._sock.close()
+
+
 class StateReceiver:
     """Joins the group; ``latest()`` drains what arrived and returns the newest snapshot seen so far."""
 
     def __init__(self, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> None:
         self.address = (group, port)
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((group, port))
-        membership = socket.inet_aton(group) + socket.inet_aton("127.0.0.1")
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
-        sock.setblocking(False)
-        self._sock = sock
+        self._sock = _receiver(group, port)
         self._latest: TwinSnapshot | None = None
 
     def latest(self) -> TwinSnapshot | None:

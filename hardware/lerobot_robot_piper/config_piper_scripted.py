@@ -1,0 +1,37 @@
+"""Configuration of the ``piper_scripted`` teleoperator: scripted demonstrations on the PiPER twin."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lerobot.teleoperators.config import TeleoperatorConfig
+
+
+@TeleoperatorConfig.register_subclass("piper_scripted")
+@dataclass
+class PiperScriptedConfig(TeleoperatorConfig):
+    """Demonstrates the twin's task (``piper-emulator --physics``) the way a person teleoperates it: it
+    watches the scene (the twin's world state on ``group``/``port``), moves the grasp point through the
+    task's waypoints at ``speed_m_s`` (each jittered by ``noise_m``, from ``seed``) and gives joint targets
+    by inverse kinematics, which the follower executes through its usual safety checks.
+
+    ``cycle=true``: once a demonstration is done it waits ``pause_s``, asks the twin to place the objects
+    for the next seed (as a person puts the cube back) and demonstrates again; otherwise it holds."""
+
+    group: str = "239.74.1.1"
+    port: int = 43200
+    speed_m_s: float = 0.12
+    noise_m: float = 0.003
+    seed: int = 0
+    cycle: bool = True
+    pause_s: float = 1.0
+    connect_timeout_s: float = 2.0
+    max_age_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("speed_m_s", "connect_timeout_s", "max_age_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"piper_scripted {name} must be positive, got {getattr(self, name)!r}")
+        for name in ("noise_m", "pause_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"piper_scripted {name} must not be negative, got {getattr(self, name)!r}")

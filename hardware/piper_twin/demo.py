@@ -1,0 +1,132 @@
+"""Scripted demonstrations: waypoints for a scene's task, followed the way a person teleoperates.
+
+``plan`` reads where the scene's objects are and returns grasp-point waypoints with a gripper opening each
+(each waypoint jittered by ``noise_m``, as a person's hand is). ``ScriptedDemo.step`` moves the commanded
+grasp point toward the next waypoint at ``speed_m_s`` and turns it into joint targets by IK; it moves on
+once the arm (as measured) is there and the waypoint's dwell (e.g. for the gripper to close) has passed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from .ik import TIP_M, ArmIK, down_rotation
+from .scenes import CubeInBowl, PressButton, Scene
+
+OPEN_M = 0.06
+ABOVE_M = 0.12
+REACHED_M = 0.01
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """Where the grasp point goes (m, world), the gripper opening there, how long to stay once reached."""
+
+    position: np.ndarray
+    gripper_m: float
+    dwell_s: float = 0.0
+
+
+def _press_button(scene: PressButton, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
+    base = data.mocap_pos[model.body("button_base").mocapid[0]]
+    yaw = math.atan2(base[1], base[0])
+    axis = down_rotation(base, yaw)[:, 2]
+    cap_top = np.array([base[0], base[1], 0.04])
+    pressed = cap_top + axis * (scene.travel_m * 0.8) / abs(axis[2])  # the closed tips, 80 % of the travel down
+    grasp = pressed - axis * TIP_M
+    above = grasp + [0.0, 0.0, ABOVE_M - grasp[2]]
+    return [Waypoint(above, 0.0), Waypoint(grasp, 0.0, 0.3), Waypoint(above, 0.0)], yaw
+
+
+def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
+    cube = data.xpos[model.body("cube").id].copy()
+    bowl = data.mocap_pos[model.body("bowl").mocapid[0]]
+    cube_yaw = 2 * math.atan2(data.xquat[model.body("cube").id][3], data.xquat[model.body("cube").id][0])
+    outward = math.atan2(cube[1], cube[0])
+    # The fingers close on two faces: the face direction nearest the outward one (J6 stays small).
+    yaw = outward + (cube_yaw - outward + math.pi / 4) % (math.pi / 2) - math.pi / 4
+    grasp = np.array([cube[0], cube[1], scene.cube_half_m + 0.01])
+    lift = np.array([cube[0], cube[1], 0.15])
+    over_bowl = np.array([bowl[0], bowl[1], 0.15])
+    drop = np.array([bowl[0], bowl[1], scene.bowl_height_m + 0.05])
+    return [
+        Waypoint(grasp + [0, 0, ABOVE_M - grasp[2]], OPEN_M),
+        Waypoint(grasp, OPEN_M),
+        Waypoint(grasp, 0.0, 0.8),
+        Waypoint(lift, 0.0),
+        Waypoint(over_bowl, 0.0),
+        Waypoint(drop, 0.0),
+        Waypoint(drop, OPEN_M, 0.6),
+        Waypoint(over_bowl, OPEN_M),
+    ], yaw
+
+
+def plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
+    """The waypoints of ``scene``'s task in the state ``data`` (after ``mj_kinematics``), and the gripper's yaw."""
+    if isinstance(scene, PressButton):
+        return _press_button(scene, model, data)
+    if isinstance(scene, CubeInBowl):
+        return _cube_in_bowl(scene, model, data)
+    raise ValueError(f"no scripted demonstration for scene {scene.name!r}")
+
+
+class ScriptedDemo:
+    """One demonstration of ``scene``: ``start`` plans it, ``step`` gives the next joint and gripper targets."""
+
+    def __init__(self, scene: Scene, model: mujoco.MjModel, speed_m_s: float = 0.12, noise_m: float = 0.003) -> None:
+        self.scene, self.model = scene, model
+        self.speed_m_s, self.noise_m = speed_m_s, noise_m
+        self.ik = ArmIK(model)
+        self.waypoints: list[Waypoint] = []
+        self.index = 0
+        self._yaw = 0.0
+        self._point = np.zeros(3)
+        self._joints = np.zeros(6)
+        self._dwell_s = 0.0
+
+    @property
+    def done(self) -> bool:
+        return self.index >= len(self.waypoints)
+
+    def start(self, data: mujoco.MjData, joints_rad: Sequence[float], rng: np.random.Generator) -> None:
+        """Plan from the objects in ``data`` (its kinematics computed), starting where the arm is."""
+        waypoints, self._yaw = plan(self.scene, self.model, data)
+        jitter = rng.normal(0.0, self.noise_m, (len(waypoints), 3)) * [1, 1, 0.3]
+        # A waypoint repeated (e.g. to close the gripper there) keeps its predecessor's jitter.
+        for k in range(1, len(waypoints)):
+            if np.array_equal(waypoints[k].position, waypoints[k - 1].position):
+                jitter[k] = jitter[k - 1]
+        self.waypoints = [
+            Waypoint(w.position + j, w.gripper_m, w.dwell_s) for w, j in zip(waypoints, jitter, strict=True)
+        ]
+        self.index = 0
+        self._joints = np.asarray(joints_rad, dtype=float)
+        self._point = self.ik.grasp_pose(self._joints)[0]
+        self._dwell_s = 0.0
+
+    def step(self, dt: float, joints_rad: Sequence[float]) -> tuple[np.ndarray, float]:
+        """Joint targets (rad) and gripper opening (m) for the next ``dt`` seconds, the arm measured at
+        ``joints_rad``; after the last waypoint it holds there."""
+        if self.done:
+            return self._joints, self.waypoints[-1].gripper_m
+        waypoint = self.waypoints[self.index]
+        offset = waypoint.position - self._point
+        distance = float(np.linalg.norm(offset))
+        self._point = (
+            waypoint.position
+            if distance <= self.speed_m_s * dt
+            else (self._point + offset / distance * self.speed_m_s * dt)
+        )
+        rotation = down_rotation(self._point, self._yaw)
+        self._joints, _ = self.ik.solve(self._joints, self._point, rotation)
+        measured = self.ik.grasp_pose(np.asarray(joints_rad, dtype=float))[0]
+        if np.array_equal(self._point, waypoint.position) and np.linalg.norm(measured - waypoint.position) < REACHED_M:
+            self._dwell_s += dt
+            if self._dwell_s >= waypoint.dwell_s:
+                self.index, self._dwell_s = self.index + 1, 0.0
+        return self._joints, waypoint.gripper_m
