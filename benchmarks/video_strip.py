@@ -1,10 +1,11 @@
 """A before/after strip from the videos of two or more evaluations on the same initial states (README's picture).
 
     python benchmarks/video_strip.py --evals=IL:outputs/.../eval/il,CSO:outputs/.../eval/cso \\
-        --tasks=reach-v3,button-press-v3 --frames=6 --out=docs/img/vision_strip.png
+        --tasks=button-press-topdown-v3,door-open-v3 --state=2000001 --frames=7 --out=docs/img/vision_strip.png
 
-For each task, the first video episode (its lowest initial state, the same for every evaluation of one config)
-is shown as one row per evaluation: ``--frames`` frames evenly spaced over the episode, titled with the outcome.
+For each task, one filmed episode (``--state``, or the lowest filmed initial state; the same states for every
+evaluation of one config) is shown as one row per evaluation: ``--frames`` frames evenly spaced over the episode,
+titled with the outcome.
 """
 
 import argparse
@@ -20,10 +21,14 @@ def frames_of(video: Path) -> list[np.ndarray]:
         return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
 
 
-def first_video(eval_dir: Path, task: str) -> Path:
+def video_of(eval_dir: Path, task: str, state: int | None) -> Path:
+    """The video of ``state`` (the lowest filmed state when None) of ``task`` in an evaluation's output."""
     videos = sorted((eval_dir / "videos" / task).glob("*.mp4"), key=lambda p: int(p.name.split("_")[0]))
+    if state is not None:
+        videos = [v for v in videos if int(v.name.split("_")[0]) == state]
     if not videos:
-        raise SystemExit(f"error: {eval_dir} has no video of {task} (evaluate with --video_episodes=N)")
+        filmed = "" if state is None else f" of state {state}"
+        raise SystemExit(f"error: {eval_dir} has no video{filmed} of {task} (evaluate with --video_episodes=N)")
     return videos[0]
 
 
@@ -32,6 +37,7 @@ def main() -> None:
     parser.add_argument("--evals", required=True, help="LABEL:DIR,LABEL:DIR,... (evaluation output dirs)")
     parser.add_argument("--tasks", required=True)
     parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--state", type=int, default=None, help="the filmed initial state (default: the lowest)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     evals = [(label, Path(d)) for label, d in (item.split(":", 1) for item in args.evals.split(","))]
@@ -39,7 +45,7 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [(task, label, first_video(d, task)) for task in tasks for label, d in evals]
+    rows = [(task, label, video_of(d, task, args.state)) for task in tasks for label, d in evals]
     fig, axes = plt.subplots(len(rows), args.frames, figsize=(1.3 * args.frames, 1.45 * len(rows)), squeeze=False)
     for ax_row, (task, label, video) in zip(axes, rows, strict=True):
         frames = frames_of(video)
