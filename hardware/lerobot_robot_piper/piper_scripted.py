@@ -17,7 +17,7 @@ from lerobot.utils.decorators import check_if_already_connected, check_if_not_co
 from .config_piper_scripted import PiperScriptedConfig
 from .features import motor_features, to_action
 
-_MAX_DT_S = 0.1
+_MAX_DT_S = 0.2
 
 
 class PiperScripted(Teleoperator):
@@ -35,7 +35,7 @@ class PiperScripted(Teleoperator):
         self._data: Any = None
         self._rng = np.random.default_rng(config.seed)
         self._planned_seed: int | None = None
-        self._last_call = 0.0
+        self._last_time_s = 0.0
         self._done_since: float | None = None
 
     @cached_property
@@ -83,7 +83,7 @@ class PiperScripted(Teleoperator):
         self._demo = ScriptedDemo(scene, model, self.config.speed_m_s, self.config.noise_m)
         self._data = mujoco.MjData(model)
         self._receiver = receiver
-        self._last_call = time.monotonic()
+        self._last_time_s = snapshot.time_s
 
     @check_if_not_connected
     def get_action(self) -> dict[str, float]:
@@ -93,8 +93,10 @@ class PiperScripted(Teleoperator):
         age = time.time() - snapshot.wall_time_s
         if age > self.config.max_age_s:
             raise TimeoutError(f"{self}: no twin state for {age:.2f} s (limit {self.config.max_age_s} s)")
+        # The twin's own clock (it runs in real time): a slow caller does not slow the demonstration down.
+        dt = min(max(snapshot.time_s - self._last_time_s, 0.0), _MAX_DT_S)
+        self._last_time_s = snapshot.time_s
         now = time.monotonic()
-        dt, self._last_call = min(now - self._last_call, _MAX_DT_S), now
         data = self._data
         data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat
         mujoco.mj_kinematics(self._demo.model, data)

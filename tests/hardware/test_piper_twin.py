@@ -386,11 +386,12 @@ def test_lerobot_record_with_the_scripted_teleoperator_records_a_successful_demo
                 "--teleop.type=piper_scripted",
                 f"--teleop.group={state_group}",
                 f"--teleop.port={state_port}",
+                "--teleop.pause_s=0.5",
                 "--dataset.repo_id=local/twin_demo",
                 f"--dataset.root={root}",
                 "--dataset.single_task=press the button",
                 "--dataset.num_episodes=1",
-                "--dataset.episode_time_s=6",
+                "--dataset.episode_time_s=8",
                 "--dataset.reset_time_s=0",
                 "--dataset.fps=15",
                 "--dataset.video=false",
@@ -409,7 +410,7 @@ def test_lerobot_record_with_the_scripted_teleoperator_records_a_successful_demo
     assert succeeded.get(4) is True and 5 in succeeded, succeeded  # pressed; then the next placement asked for
     table = pa.concat_tables([pq.read_table(f) for f in sorted((root / "data").glob("*/*.parquet"))])
     actions = np.array(table.column("action").to_pylist())
-    assert 30 <= len(actions) <= 95 and np.ptp(actions[:, 1]) > 0.5  # 6 s at 15 fps (fewer on a loaded machine)
+    assert 40 <= len(actions) <= 125 and np.ptp(actions[:, 1]) > 0.5  # 8 s at 15 fps (fewer on a loaded machine)
     for view in ("front", "wrist"):
         images = [frame["bytes"] for frame in table.column(f"observation.images.{view}").to_pylist()]
         assert len(images) == len(actions) and images[0] != images[-1]  # real pixels, and they changed
