@@ -52,6 +52,7 @@ class TwinPlant:
         self._fingers_qpos = np.array([self.model.joint(n).qposadr[0] for n in FINGER_JOINTS])
         self._fingers_dof = np.array([self.model.joint(n).dofadr[0] for n in FINGER_JOINTS])
         self._debt_s = 0.0
+        self.placement = 0  # how many times the objects were placed
         self.reset(seed, pose_rad, gripper_m)
 
     def reset(self, seed: int, pose_rad: Sequence[float] | None = None, gripper_m: float = 0.0) -> None:
@@ -67,6 +68,7 @@ class TwinPlant:
     def place(self, seed: int) -> None:
         """Place the scene's objects for ``seed`` (the arm stays as it is); the task is not done yet."""
         self.seed = seed
+        self.placement += 1
         self.scene.place(self.model, self.data, seed)
         self._succeeded = False
         mujoco.mj_forward(self.model, self.data)
@@ -86,6 +88,7 @@ class TwinPlant:
         return TwinSnapshot(
             self.scene.name,
             self.seed,
+            self.placement,
             self.time_s,
             time.time(),
             self.succeeded(),

@@ -90,6 +90,8 @@ class PressButton(Scene):
     def place(self, model: mujoco.MjModel, data: mujoco.MjData, seed: int) -> None:
         xy = _uniform_xy(np.random.default_rng(seed), self.x_range, self.y_range)
         data.mocap_pos[model.body("button_base").mocapid[0]] = [*xy, 0.0]
+        button = model.joint("button")
+        data.qpos[button.qposadr[0]], data.qvel[button.dofadr[0]] = 0.0, 0.0  # released
 
     def depth(self, model: mujoco.MjModel, data: mujoco.MjData) -> float:
         """How far the cap is pressed down (m)."""

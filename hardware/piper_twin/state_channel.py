@@ -22,7 +22,7 @@ import numpy as np
 DEFAULT_GROUP = "239.74.1.1"
 DEFAULT_PORT = 43200
 _MAGIC = b"PTW1"
-_HEADER = struct.Struct("<4s32sqddBHH")  # magic, scene, seed, time, wall time, success, nq, nmocap
+_HEADER = struct.Struct("<4s32sqqddBHH")  # magic, scene, seed, placement, time, wall time, success, nq, nmocap
 _MAX_DATAGRAM = 65_000
 _PLACE = struct.Struct("<4sq")  # magic, seed
 _PLACE_MAGIC = b"PTP1"
@@ -31,10 +31,11 @@ _PLACE_MAGIC = b"PTP1"
 @dataclass(frozen=True)
 class TwinSnapshot:
     """The twin's state at ``time_s`` (simulated seconds since the emulator started), taken at
-    ``wall_time_s`` (``time.time()``)."""
+    ``wall_time_s`` (``time.time()``); ``placement`` counts the placements of the objects so far."""
 
     scene: str
     seed: int
+    placement: int
     time_s: float
     wall_time_s: float
     success: bool
@@ -47,13 +48,15 @@ class TwinSnapshot:
         if len(name) > 32:
             raise ValueError(f"scene name longer than 32 bytes: {self.scene!r}")
         nq, nmocap = len(self.qpos), len(self.mocap_pos)
-        header = _HEADER.pack(_MAGIC, name, self.seed, self.time_s, self.wall_time_s, self.success, nq, nmocap)
+        header = _HEADER.pack(
+            _MAGIC, name, self.seed, self.placement, self.time_s, self.wall_time_s, self.success, nq, nmocap
+        )
         arrays = np.concatenate([self.qpos, self.mocap_pos.ravel(), self.mocap_quat.ravel()]).astype("<f8")
         return header + arrays.tobytes()
 
     @classmethod
     def decode(cls, datagram: bytes) -> TwinSnapshot:
-        magic, name, seed, time_s, wall_time_s, success, nq, nmocap = _HEADER.unpack_from(datagram)
+        magic, name, seed, placement, time_s, wall_time_s, success, nq, nmocap = _HEADER.unpack_from(datagram)
         if magic != _MAGIC:
             raise ValueError("not a PiPER twin state datagram")
         values = np.frombuffer(datagram, "<f8", offset=_HEADER.size)
@@ -62,6 +65,7 @@ class TwinSnapshot:
         return cls(
             name.rstrip(b"\x00").decode("ascii"),
             seed,
+            placement,
             time_s,
             wall_time_s,
             bool(success),
@@ -159,6 +163,24 @@ class StateReceiver:
         while (snapshot := self.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.005)
         return snapshot
+
+    def place(self, seed: int, timeout_s: float = 2.0) -> TwinSnapshot:
+        """Have the twin place its objects for ``seed`` (an episode's initial state) and return its first
+        state after it did; the request is repeated every 0.1 s until seen (a datagram can be lost), so
+        the objects may be placed twice. ``TimeoutError`` when the twin does not answer."""
+        deadline = time.monotonic() + timeout_s
+        before = self.wait(timeout_s)
+        while before is not None and time.monotonic() < deadline:
+            request_placement(seed, *self.address)
+            retry = min(time.monotonic() + 0.1, deadline)
+            while time.monotonic() < retry:
+                snapshot = self.latest()
+                if snapshot is not None and snapshot.placement > before.placement and snapshot.seed == seed:
+                    return snapshot
+                time.sleep(0.005)
+        raise TimeoutError(
+            f"the twin on {self.address[0]}:{self.address[1]} did not place seed {seed} in {timeout_s} s"
+        )
 
     def close(self) -> None:
         self._sock.close()

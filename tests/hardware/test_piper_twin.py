@@ -24,7 +24,7 @@ from piper_twin.demo import ScriptedDemo
 from piper_twin.model import GRIPPER_MAX_M, arm_spec
 from piper_twin.plant import TwinPlant
 from piper_twin.scenes import CubeInBowl, PressButton
-from piper_twin.state_channel import StatePublisher, StateReceiver, TwinSnapshot
+from piper_twin.state_channel import PlacementRequests, StatePublisher, StateReceiver, TwinSnapshot
 
 RAISED = (0.3, 1.2, -1.0, 0.2, 0.5, 0.1)
 KEYS = [*(f"joint_{j}.pos" for j in range(1, 7)), "gripper.pos"]
@@ -237,11 +237,13 @@ def test_a_scripted_demonstration_does_the_task_through_the_real_driver(scene, s
 
 
 class Publishing:
-    """Publishes a plant's state every 10 ms on a thread, as ``piper-emulator --physics`` does."""
+    """Publishes a plant's state every 10 ms on a thread and places its objects on request, as
+    ``piper-emulator --physics`` does."""
 
     def __init__(self, plant: TwinPlant, group: str, port: int) -> None:
         self.plant, self.lock = plant, threading.Lock()
         self._publisher = StatePublisher(group, port)
+        self._requests = PlacementRequests(group, port)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -249,6 +251,8 @@ class Publishing:
     def _run(self) -> None:
         while not self._stop.wait(0.01):
             with self.lock:
+                if (seed := self._requests.poll()) is not None:
+                    self.plant.place(seed)
                 snapshot = self.plant.snapshot()
             self._publisher.publish(snapshot)
 
@@ -256,6 +260,38 @@ class Publishing:
         self._stop.set()
         self._thread.join(timeout=2)
         self._publisher.close()
+        self._requests.close()
+
+
+def test_an_operator_places_the_objects_for_a_seed_and_reads_the_verdict_over_the_channel():
+    group, port = unique_udp_channel()
+    plant = TwinPlant("press_button", seed=0, pose_rad=RAISED)
+    publishing = Publishing(plant, group, port)
+    receiver = StateReceiver(group, port)
+    try:
+        with publishing.lock:  # the last episode pressed the button
+            plant.data.qpos[plant.model.joint("button").qposadr[0]] = -0.007
+            plant.step(0.005, PlantCommand(RAISED, (0.0,) * 6, ("servo",) * 6, 0.0, "servo"))
+        assert receiver.wait(1.0) is not None and _eventually(lambda: receiver.latest().success)
+        placed = receiver.place(7)
+        assert placed.seed == 7 and placed.placement == 2 and not placed.success
+        assert np.allclose(placed.mocap_pos, TwinPlant("press_button", seed=7).snapshot().mocap_pos)
+        assert np.allclose(placed.qpos[:6], RAISED, atol=1e-3)  # the arm was not touched
+        assert receiver.place(7).placement >= 3  # the same seed again is a new placement
+    finally:
+        receiver.close()
+        publishing.stop()
+    nobody = StateReceiver(*unique_udp_channel())
+    with pytest.raises(TimeoutError, match="did not place seed 8"):
+        nobody.place(8, timeout_s=0.1)
+    nobody.close()
+
+
+def _eventually(condition, timeout_s: float = 1.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return condition()
 
 
 def test_twin_cameras_render_the_published_state_through_lerobots_camera_factory():
@@ -303,7 +339,7 @@ def test_a_twin_camera_refuses_to_connect_without_a_twin_and_to_render_a_stale_s
 def test_a_snapshot_survives_its_datagram():
     snapshot = TwinPlant("press_button", seed=5).snapshot()
     decoded = TwinSnapshot.decode(snapshot.encode())
-    assert (decoded.scene, decoded.seed, decoded.success) == ("press_button", 5, False)
+    assert (decoded.scene, decoded.seed, decoded.placement, decoded.success) == ("press_button", 5, 1, False)
     assert np.array_equal(decoded.qpos, snapshot.qpos) and np.array_equal(decoded.mocap_quat, snapshot.mocap_quat)
     with pytest.raises(ValueError, match="truncated"):
         TwinSnapshot.decode(snapshot.encode()[:-8])
