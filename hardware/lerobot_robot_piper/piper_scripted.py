@@ -34,7 +34,7 @@ class PiperScripted(Teleoperator):
         self._demo: Any = None
         self._data: Any = None
         self._rng = np.random.default_rng(config.seed)
-        self._planned_seed: int | None = None
+        self._planned: int | None = None  # the placement the current demonstration is for
         self._last_time_s = 0.0
         self._done_since: float | None = None
 
@@ -101,9 +101,9 @@ class PiperScripted(Teleoperator):
         data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat
         mujoco.mj_kinematics(self._demo.model, data)
         joints = self._demo.ik.joints(snapshot.qpos)
-        if self._planned_seed != snapshot.seed:  # a new placement: demonstrate from where the arm is
+        if self._planned != snapshot.placement:  # objects placed anew: demonstrate from where the arm is
             self._demo.start(data, joints, self._rng)
-            self._planned_seed, self._done_since = snapshot.seed, None
+            self._planned, self._done_since = snapshot.placement, None
             self.demos_started += 1
         targets, gripper = self._demo.step(dt, joints)
         if self._demo.done and self.config.cycle:
