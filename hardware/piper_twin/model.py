@@ -181,8 +181,8 @@ def _add_world(spec: mujoco.MjSpec) -> None:
     light.pos, light.dir, light.castshadow = [0.3, -0.3, 1.5], [0, 0.2, -1], False
     front = world.add_camera()
     front.name = "front"
-    eye = np.array([0.95, 0.0, 0.6])
-    front.pos, front.quat = eye, look_at_quat(eye, np.array([0.2, 0.0, 0.12]), np.array([0.0, 0.0, 1.0]))
+    eye = np.array([0.8, 0.0, 0.5])
+    front.pos, front.quat = eye, look_at_quat(eye, np.array([0.22, 0.0, 0.1]), np.array([0.0, 0.0, 1.0]))
     front.fovy = 55.0
     wrist = spec.body("gripper").add_camera()
     wrist.name = "wrist"
