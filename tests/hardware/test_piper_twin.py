@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 from lerobot.cameras import make_cameras_from_configs
 from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperTwinCameraConfig
-from piper_can.errors import ArmNotReadyError, EmergencyStopError
+from piper_can.errors import ArmNotReadyError, EmergencyStopError, FirmwareFaultError
 from piper_can.firmware import PlantCommand
 from piper_can.safety import SDK_SOFT_LIMITS
 from piper_processes import explain, run_cli, start_emulator
@@ -156,6 +156,19 @@ def test_an_e_stopped_arm_sinks_slowly_and_refuses_commands():
         # Braked (30 N m s/rad): J3 sinks, but an order of magnitude slower than a limp arm falls.
         assert 1e-3 < sunk.max() < 0.05, sunk
         assert rig.arm.estopped and rig.arm.targets_rad == pytest.approx(rig.arm.joints_rad, abs=1e-3)  # no goal
+
+
+def test_a_fault_refuses_commands_while_the_motors_hold_the_arm_and_clearing_it_lets_them_move_it():
+    with make_rig(plant=TwinPlant("table"), speed_percent=100) as rig:
+        walk(rig, RAISED)
+        rig.arm.inject_fault("collision", 3)
+        rig.sleep(0.03)
+        with pytest.raises(FirmwareFaultError, match="joint_3"):
+            rig.driver.command((0.0, 0.5, -0.5, 0.0, 0.0, 0.0))
+        rig.sleep(0.5)
+        assert np.abs(np.subtract(rig.arm.joints_rad, RAISED)).max() < 2e-3  # held against gravity
+        rig.driver.clear_errors()
+        walk(rig, (0.0, 0.8, -0.8, 0.0, 0.3, 0.0))
 
 
 def test_a_limp_arm_at_rest_stays_inside_the_firmware_limits_so_it_can_be_enabled():
