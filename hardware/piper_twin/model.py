@@ -31,7 +31,6 @@ ARM_CONTACT = (2, 1)
 WORLD_CONTACT = (1, 3)
 GRIPPER_MAX_M = 0.07  # the opening between the fingers; each finger travels half of it
 TIMESTEP_S = 0.002
-CAMERAS = ("front", "wrist")
 
 # Servo gains, per joint: the firmware plans at most 3 rad/s and the servo tracks that plan with velocity
 # feed-forward. With the XML's armature (0.1 kg m^2), kp = 400 N m/rad and kv = 25 N m s/rad (near critical)

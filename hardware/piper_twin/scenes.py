@@ -48,7 +48,8 @@ def _uniform_xy(rng: np.random.Generator, x: tuple[float, float], y: tuple[float
 
 @dataclass(frozen=True)
 class Scene:
-    """The table alone (no task: ``succeeded`` is always False)."""
+    """The table alone (no task: ``succeeded`` is always False). ``instruction``: the task's words, as a
+    dataset records them (``--dataset.single_task``)."""
 
     name: str = "table"
     instruction: str = ""
