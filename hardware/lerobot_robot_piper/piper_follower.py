@@ -46,6 +46,8 @@ class PiperFollower(Robot):
 
     config_class = PiperFollowerConfig
     name = "piper_follower"
+    # How to bring the arm back after a fault, for the one line a caller prints (lerobot-cso's robot rollouts).
+    recovery_hint = "PiPER: release the e-stop if pressed, then piper-recover, or rerun with --robot.recovery=reset"
 
     def __init__(self, config: PiperFollowerConfig, clock: Clock = SYSTEM_CLOCK):
         """``clock``: the system's (LeRobot's CLIs), or a ``SimulatedClock`` in tests."""
