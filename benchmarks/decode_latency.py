@@ -23,6 +23,7 @@ from torch import Tensor
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.fast_prior import FastSkillSampler
+from lerobot_cso.sampling import Sampling
 
 WARMUP = 10
 
@@ -31,9 +32,9 @@ def paths(policy: CSOPolicy) -> dict[str, Callable[[Tensor], tuple[Tensor, Tenso
     """Token samplers by name, each (context) → (tokens, log-probs), top-k 5."""
     fast = {w: FastSkillSampler(policy.prior, w) for w in ("float32", "int8")}
     return {
-        "reference fp32 (sample_skills)": lambda c: policy.sample_skills(c, top_k=5),
-        "fast fp32": lambda c: fast["float32"].sample(c, top_k=5),
-        "fast int8": lambda c: fast["int8"].sample(c, top_k=5),
+        "reference fp32 (sample_skills)": lambda c: policy.sample_skills(c, Sampling(top_k=5)),
+        "fast fp32": lambda c: fast["float32"].sample(c, Sampling(top_k=5)),
+        "fast int8": lambda c: fast["int8"].sample(c, Sampling(top_k=5)),
     }
 
 

@@ -88,10 +88,11 @@ def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
 
 def load(path: Path, command: str, config: dict[str, Any]) -> dict[str, Any]:
     """The results so far, with ``command`` appended to the commands that made them (``"; "``-separated);
-    a file made with another config is refused, so runs of two configs never mix."""
+    a file made with another config is refused, so runs of two configs never mix. Its config is read as
+    :func:`config_spec` writes one now (settings added or moved since, at their behave-as-before values, left out)."""
     if path.is_file():
         results = json.loads(path.read_text())
-        if results.get("config") != config:
+        if without_added_settings(results.get("config")) != config:
             raise SystemExit(
                 f"error: {path} holds results of another config (its 'config' differs from --config's); "
                 "move it aside or pass another --results"

@@ -24,22 +24,21 @@ import subprocess
 import sys
 import tempfile
 import time
-from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from lerobot_cso import seeds
 from lerobot_cso.demos import DemosConfig, generate_demos
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import IMAGE_SIZE
-from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, state_layout
-from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.rollout.engine import RolloutEngine, Sampling, policy_cameras
-from lerobot_cso.rollout.expert import ExpertController
+from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.rollout.pool import EnvPool, Job
 from lerobot_cso.rollout.sharded import ShardedVectorEnv
-from lerobot_cso.rollout.world import image_size_of
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.expert import ExpertController
+from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.metaworld.world import policy_pool
+from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
 SMALL_POLICY = [
     "--policy.ae_dim=128",
@@ -98,16 +97,6 @@ def mean_reset_seconds(pool: EnvPool, tasks: list[str], n: int = 10) -> float:
     return (time.perf_counter() - started) / (n * len(tasks))
 
 
-def pool_for(policy: torch.nn.Module, num_envs: int, max_steps: int, vectorization: str) -> EnvPool:
-    """Envs that give the policy what it reads, rendering only its decision frames."""
-    features = policy.config.input_features
-    cameras = tuple(policy_cameras(policy))
-    size = image_size_of(features, IMAGE_SIZE)
-    state = state_layout(features["observation.state"].shape[-1])
-    factory = partial(CSOMetaWorldEnv, "reach-v3", cameras, size, max_steps, state=state)
-    return EnvPool(num_envs, cameras, size, max_steps, vectorization, env_factory=factory, frames="decisions")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", default="reach-v3,button-press-v3,pick-place-v3,door-open-v3")
@@ -144,12 +133,14 @@ def main() -> None:
     lengths: dict[str, list[float]] = {"expert": [], "policy": []}
     decisions, policy_seconds = 0, 0.0
     with (
-        pool_for(policy, args.num_envs, args.max_steps, args.vectorization) as policy_pool,
-        EnvPool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
-        RolloutEngine(policy, pre, post, policy_pool, task_description) as engine,
+        policy_pool(
+            policy.config.input_features, args.num_envs, args.max_steps, args.vectorization, frames="decisions"
+        ) as envs,
+        metaworld_pool(args.num_envs, max_steps=args.max_steps, vectorization="sync") as pool,
+        RolloutEngine(policy, pre, post, envs, task_description) as engine,
     ):
         # The processes that step (and reset) the policy's envs in parallel.
-        workers = len(policy_pool.vec.shards) if isinstance(policy_pool.vec, ShardedVectorEnv) else 1
+        workers = len(envs.vec.shards) if isinstance(envs.vec, ShardedVectorEnv) else 1
         expert_round(pool, expert_jobs[:: args.expert_episodes])  # warm-up: build every task's models
         engine.rollout(policy_states[:: args.policy_episodes], sampling=Sampling())
         for r in range(args.rounds):

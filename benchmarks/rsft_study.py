@@ -30,13 +30,14 @@ import draccus
 import numpy as np
 import torch
 
+from lerobot_cso import seeds
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso.rsft import run_rsft
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
-from lerobot_cso.rollout.engine import RolloutEngine, Sampling
-from lerobot_cso.rollout.pool import EnvPool
+from lerobot_cso.rollout.engine import RolloutEngine
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.tasks import resolve_tasks, task_description
+from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
 KEEP_ALL = {"max_successes_per_state": None}  # the paper's rule
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -85,7 +86,7 @@ def success_rates(policy_path: Path, tasks: list[str], n_states: int, k: int, nu
     policy, pre, post = load_policy(policy_path)
     first = len(seeds.TRAIN) // 2 - n_states
     states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, n_states)]
-    with RolloutEngine(policy, pre, post, EnvPool(num_envs, max_steps=200), task_description) as engine:
+    with RolloutEngine(policy, pre, post, metaworld_pool(num_envs, max_steps=200), task_description) as engine:
         result = engine.rollout(states, k=k, sampling=Sampling(), seed=11, progress=str(policy_path.parent.name))
     return {t: [sum(e.success for e in g) for g in result.groups() if g[0].task == t] for t in tasks}
 

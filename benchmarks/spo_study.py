@@ -36,8 +36,8 @@ import torch
 from rsft_study import success_rates
 
 from lerobot_cso.cso.spo import SPOConfig, run_spo
-from lerobot_cso.envs.tasks import resolve_tasks
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
+from lerobot_cso.worlds.metaworld.tasks import resolve_tasks
 
 SETTINGS = {
     "i": ("iterations", int),

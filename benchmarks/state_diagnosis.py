@@ -18,12 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from rollout_efficiency import pool_for
 
+from lerobot_cso import seeds
 from lerobot_cso.checkpoints import load_policy
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.tasks import resolve_tasks, task_description
-from lerobot_cso.rollout.engine import RolloutEngine, Sampling
+from lerobot_cso.rollout.engine import RolloutEngine
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.tasks import resolve_tasks, task_description
+from lerobot_cso.worlds.metaworld.world import policy_pool
 
 
 def main() -> int:
@@ -47,7 +48,8 @@ def main() -> int:
     first = len(seeds.TRAIN) // 2 - args.states
     states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, args.states)]
     sampling = Sampling(temperature=args.temperature, top_k=args.top_k)
-    pool = pool_for(policy, args.num_envs, args.max_steps, args.vectorization)  # a camera policy's too
+    features = policy.config.input_features  # a camera policy's too
+    pool = policy_pool(features, args.num_envs, args.max_steps, args.vectorization, frames="decisions")
     with RolloutEngine(policy, pre, post, pool, task_description) as engine:
         result = engine.rollout(states, k=args.k, sampling=sampling, seed=args.seed, progress="diagnosis")
     report = {"policy": str(args.policy_path), "k": args.k, "sampling": vars(sampling), "tasks": {}}

@@ -16,6 +16,8 @@ from collections.abc import Callable
 
 from lerobot_cso.errors import UsageError, interrupted_where, parse_errors_as_usage_errors
 
+ROBOT_WORLD_FIELDS = ("robot", "teleop", "operator", "display_data")  # --world.<field>, spelt --<field> for short
+ROLLOUT_STAGES = ("eval", "rsft", "spo")
 SUBCOMMANDS: dict[str, str] = {  # name -> "module:function"
     "demos": "lerobot_cso.demos:demos_main",
     "eval": "lerobot_cso.evaluation:eval_main",
@@ -28,6 +30,18 @@ SUBCOMMANDS: dict[str, str] = {  # name -> "module:function"
 def _usage() -> str:
     names = ", ".join(SUBCOMMANDS)
     return f"usage: lerobot-cso {{{names}}} [--key=value ...] [--config_path=FILE.yaml]  (--help per subcommand)"
+
+
+def robot_world_args(args: list[str]) -> list[str]:
+    """A rollout stage's ``--robot.*``, ``--teleop.*``, ``--operator.*`` and ``--display_data`` as the robot world's
+    ``--world.*`` settings, with ``--world.type=robot`` when no ``--world.type`` is given (the short spelling)."""
+    short = [a for a in args if a.startswith("--") and a[2:].split("=")[0].split(".")[0] in ROBOT_WORLD_FIELDS]
+    if not short:
+        return args
+    spelt = [f"--world.{a.removeprefix('--')}" if a in short else a for a in args]
+    if not any(a.startswith("--world.type") for a in args):
+        spelt.insert(0, "--world.type=robot")
+    return spelt
 
 
 def _command(name: str) -> Callable[[], object]:
@@ -47,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from lerobot.utils.import_utils import register_third_party_plugins
 
+    if name in ROLLOUT_STAGES:
+        rest = robot_world_args(rest)
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
     register_third_party_plugins()
     try:

@@ -8,13 +8,13 @@ gives the same dataset, bit for bit, however the work is split over envs or inte
 ``episodes_per_task`` successes.
 
 Features: ``observation.state`` (float32; the ``state`` layout of
-:data:`~lerobot_cso.envs.constants.STATE_LAYOUTS`: the full 39-d state by default, ``proprio`` for QueST's 8-d
-camera setting — the expert always reads the full state, the dataset keeps the layout's part), ``action`` (4,
-float32, as executed), optional ``observation.images.<camera>`` (``image_size``², PNG ``image``), ``task`` = the
-task's language description, and per-frame episode metadata that LeRobot's tools carry along: ``metaworld.task``
-(task name), ``metaworld.init_seed`` and ``metaworld.success`` (the episode's outcome). The episode length is
-LeRobot's own ``length``. The generation settings are kept in ``meta/cso_demos.json``; a run on a dir holding a
-dataset made with other settings, or anything else, is refused.
+:data:`~lerobot_cso.worlds.metaworld.constants.STATE_LAYOUTS`: the full 39-d state by default, ``proprio`` for
+QueST's 8-d camera setting — the expert always reads the full state, the dataset keeps the layout's part),
+``action`` (4, float32, as executed), optional ``observation.images.<camera>`` (``image_size``², PNG ``image``),
+``task`` = the task's language description, and per-frame episode metadata that LeRobot's tools carry along:
+``metaworld.task`` (task name), ``metaworld.init_seed`` and ``metaworld.success`` (the episode's outcome). The
+episode length is LeRobot's own ``length``. The generation settings are kept in ``meta/cso_demos.json``; a run on a
+dir holding a dataset made with other settings, or anything else, is refused.
 
 **An existing dataset instead** (``dataset_root``, with its ``repo_id``): for a world without a scripted expert
 (LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
@@ -44,15 +44,16 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
+from lerobot_cso import seeds
 from lerobot_cso.durable import EpisodeJournal, output_lock, replace_dir, restore_interrupted_replace, write_json
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.config import parse_cameras
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
-from lerobot_cso.envs.metaworld_env import select_state
-from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError, check_number, check_output_dir
-from lerobot_cso.rollout.world import MetaWorld, SimWorld, world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
+from lerobot_cso.worlds.base import SimWorld
+from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.env import select_state
+from lerobot_cso.worlds.metaworld.env_config import parse_cameras
+from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.registry import default_world
 
 SPEC_FILE = "meta/cso_demos.json"
 TASK_KEY = "metaworld.task"
@@ -103,9 +104,10 @@ class DemosConfig:
         if self.dataset_root is not None:
             return check_dataset(self)[0]
         check_output_dir(self.output_dir)
-        world = world_for(self.tasks)
+        settings = default_world(self.tasks)
+        world = settings.build(self.tasks, None, None)
         tasks = _resolve(world, self.tasks)
-        if not isinstance(world, MetaWorld):
+        if not settings.scripted_demos:
             raise UsageError(
                 f"{world.name} has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
                 "--demos.dataset_root=<its folder> --demos.repo_id=<its repo id> (e.g. lerobot/libero_spatial)"
@@ -137,7 +139,7 @@ def _resolve(world: SimWorld, spec: str) -> list[str]:
 def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     """The tasks of ``cfg`` and the metadata of the dataset at ``cfg.dataset_root``, checked to fit each other
     and the tasks' world. Raises ``UsageError``."""
-    world = world_for(cfg.tasks)
+    world = default_world(cfg.tasks).build(cfg.tasks, None, None)
     tasks = _resolve(world, cfg.tasks)
     root = cfg.dataset_root
     try:
@@ -244,11 +246,12 @@ def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[
 
 def _generate(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, known: dict[tuple[str, int], bool]) -> None:
     """Run episodes until every task has its count (staged + in the dataset); each one is staged at once."""
-    from lerobot_cso.rollout.expert import ExpertController
-    from lerobot_cso.rollout.pool import EnvPool, Job
+    from lerobot_cso.rollout.backend import Job
+    from lerobot_cso.worlds.metaworld.expert import ExpertController
+    from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
     cameras = parse_cameras(cfg.cameras)
-    with EnvPool(cfg.num_envs, cameras, cfg.image_size, cfg.max_steps) as pool:
+    with metaworld_pool(cfg.num_envs, cameras, cfg.image_size, cfg.max_steps) as pool:
         while jobs := _plan(tasks, cfg.episodes_per_task, cfg.keep_failed, known):
             controller = ExpertController(cfg.num_envs, cfg.noise_std, cfg.seed)
             for _, trace in pool.run([Job(t, s) for t, s in jobs], controller, progress="demo episodes"):

@@ -9,7 +9,8 @@ Launch any rollout stage on N processes (one env pool and policy replica each)::
   every process, in request order. Which states a stage uses never depends on N (they come from its world),
   so seed ranges stay disjoint and a run resumes with another N.
 * **Prior updates** (:func:`all_reduce_gradients`): each process back-propagates its rows of every
-  minibatch and the gradients are averaged, so every replica takes the same step.
+  minibatch, its loss divided by the whole minibatch's unit count, and the gradients are summed over the
+  processes: the sum is the whole minibatch's gradient, so every replica takes the same step as one process.
 * **Writes**: only the main process writes checkpoints, buffers and logs (:func:`is_main`); the others wait.
 
 With one process (plain ``lerobot-cso ...``) every function here is the identity.
@@ -24,8 +25,9 @@ import torch
 from accelerate import PartialState
 from accelerate.utils import gather_object
 
-from lerobot_cso.envs import seeds
-from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult, Sampling
+from lerobot_cso import seeds
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult
+from lerobot_cso.sampling import Sampling
 
 
 def state() -> PartialState:

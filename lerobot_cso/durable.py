@@ -1,7 +1,8 @@
 """Everything that must survive ``kill -9``: atomic files and directories, an episode journal, resumable state.
 
 * :func:`write_atomic` / :func:`write_json` / :func:`save_npz`: a reader (or a rerun after a crash) sees the
-  old content or the new, never a torn file; data and directory entry are fsynced.
+  old content or the new, never a torn file; data and directory entry are fsynced. :func:`link_atomic` does the
+  same for a symbolic link.
 * :func:`replace_dir`: swap a finished directory into place; :func:`restore_interrupted_replace` undoes a swap
   killed between its two renames.
 * :class:`EpisodeJournal`: one file per finished episode, written the moment it ends, plus small per-group
@@ -50,9 +51,26 @@ def _commit(tmp: Path, path: Path, write: Callable[[Any], None]) -> None:
     _fsync_dir(path.parent)
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temporary sibling, fsync, rename)."""
-    _commit(path.with_name(path.name + ".tmp"), path, lambda f: f.write(data))
+def _own_tmp(path: Path) -> Path:
+    """This process's temporary sibling of ``path``."""
+    return path.with_name(f"{path.name}.{os.getpid()}.tmp")
+
+
+def write_atomic(path: Path, data: bytes, shared: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically (temporary sibling, fsync, rename). The next write replaces the
+    temporary file a killed one left; ``shared``: processes may write the same file at once, so each writes its own
+    temporary file."""
+    tmp = _own_tmp(path) if shared else path.with_name(path.name + ".tmp")
+    _commit(tmp, path, lambda f: f.write(data))
+
+
+def link_atomic(link: Path, target: Path) -> None:
+    """Make ``link`` a symbolic link to the directory ``target``, atomically (processes may do it at once)."""
+    tmp = _own_tmp(link)
+    tmp.unlink(missing_ok=True)
+    tmp.symlink_to(target, target_is_directory=True)
+    os.replace(tmp, link)
+    _fsync_dir(link.parent)
 
 
 def write_json(path: Path, data: Any) -> None:

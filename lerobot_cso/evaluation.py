@@ -1,11 +1,11 @@
 """``lerobot-cso eval``: per-task success rates of a policy, mean ± std over seeds.
 
 Evaluation seed ``s`` fixes the sampling RNG and the initial states, which the world chooses
-(:meth:`~lerobot_cso.rollout.world.World.eval_states`; on LIBERO every seed reuses the benchmark's 50 fixed
+(:meth:`~lerobot_cso.worlds.base.World.eval_states`; on LIBERO every seed reuses the benchmark's 50 fixed
 init states per task, as the paper's protocol does). On MetaWorld episode ``i`` of a task starts
 from ``seeds.EVAL.start + s * seeds.EVAL_BLOCK + i``: the states are fixed per seed (the same for every
 checkpoint), disjoint between seeds, and disjoint from every demo and training-rollout state
-(:mod:`lerobot_cso.envs.seeds`). The spread over seeds covers initial states and
+(:mod:`lerobot_cso.seeds`). The spread over seeds covers initial states and
 sampling, so it is meaningful even with greedy decoding.
 
 Default sampling is QueST's: top-k = 5 at temperature 1. The std is the sample std over seeds (ddof=1;
@@ -25,9 +25,9 @@ from typing import Any, ClassVar
 import numpy as np
 from lerobot.configs import parser
 
+from lerobot_cso import rollout_stage
 from lerobot_cso.errors import UsageError
-from lerobot_cso.rollout.world import policy_features
-from lerobot_cso.rollout_stage import RolloutStageConfig
+from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
 
 
 @dataclass
@@ -53,7 +53,7 @@ class EvalConfig(RolloutStageConfig):
             values = [int(s) for s in self.seeds.split(",") if s.strip()]
         except ValueError:
             raise UsageError(f"seeds must be a comma list of integers, got '{self.seeds}'") from None
-        n_seeds = self.world().eval_seeds
+        n_seeds = self.rollout_world().eval_seeds
         if not values or any(not 0 <= s < n_seeds for s in values) or len(set(values)) != len(values):
             raise UsageError(f"seeds must be distinct integers in [0, {n_seeds}), got '{self.seeds}'")
         return values
@@ -61,7 +61,7 @@ class EvalConfig(RolloutStageConfig):
     def validate(self) -> list[str]:
         """Check every setting; returns the resolved task list. Raises ``UsageError``."""
         tasks = super().validate()
-        most = self.world().eval_states_per_seed
+        most = self.rollout_world().eval_states_per_seed
         if not 0 < self.episodes_per_task <= most:
             raise UsageError(f"episodes_per_task must be in [1, {most}], got {self.episodes_per_task}")
         if not 0 <= self.video_episodes <= self.episodes_per_task:
@@ -171,16 +171,16 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
     from lerobot_cso import distributed
     from lerobot_cso.checkpoints import load_policy
-    from lerobot_cso.rollout.engine import RolloutEngine, policy_cameras
+    from lerobot_cso.rollout.engine import policy_cameras
 
     tasks = cfg.validate()
     eval_seed_list = cfg.eval_seeds()
     path = cfg.policy.pretrained_path
     policy, pre, post = load_policy(path, cfg.policy)
-    world = cfg.world()
+    world = cfg.rollout_world()
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
     episodes, throughput, videos = [], [], []
-    with distributed.ShardedRollouts(RolloutEngine.for_stage(policy, pre, post, cfg)) as engine:
+    with distributed.ShardedRollouts(rollout_stage.stage_engine(policy, pre, post, cfg)) as engine:
         for s in eval_seed_list:
             states = [(task, init) for task in tasks for init in world.eval_states(task, s, cfg.episodes_per_task)]
             first = s == eval_seed_list[0]

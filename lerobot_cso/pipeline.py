@@ -52,8 +52,9 @@ from lerobot_cso.il import ILConfig, ILStage
 from lerobot_cso.policy.configuration_cso import CSOConfig
 from lerobot_cso.records import run_recorded
 from lerobot_cso.rollout.pool import kept_pools
-from lerobot_cso.rollout.world import world_for
 from lerobot_cso.stage import PIPELINE_FIELDS, Stage
+from lerobot_cso.worlds.base import WorldConfig
+from lerobot_cso.worlds.registry import default_world
 
 SECTIONS = {"demos": PIPELINE_FIELDS[:2], "eval": PIPELINE_FIELDS, "rsft": PIPELINE_FIELDS, "spo": PIPELINE_FIELDS}
 EVALUATED = {"il": "IL", "rsft": "R-SFT", "cso": "CSO"}  # evaluation name → table column
@@ -64,6 +65,8 @@ STAGES = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")  # i
 class PipelineConfig:
     """Settings of ``lerobot-cso pipeline`` (see the module docstring; examples in ``configs/``)."""
 
+    # The world every stage runs in (--world.type=...); null: the world whose tasks --tasks names.
+    world: WorldConfig | None = None
     # One task, a comma list, or a set (MT10, ML45-train, ...): every stage runs on these.
     tasks: str = "MT10"
     output_dir: Path = Path("outputs/pipeline")
@@ -123,7 +126,7 @@ class Pipeline:
         self.cfg = cfg
         self.out = cfg.output_dir
         try:
-            self.tasks = world_for(cfg.tasks).resolve_tasks(cfg.tasks)
+            self.tasks = self.world_settings().build(cfg.tasks, None, cfg.output_dir).resolve_tasks(cfg.tasks)
         except ValueError as e:
             raise UsageError(str(e)) from None
         for name in ("torch_threads", "train_threads"):
@@ -134,13 +137,20 @@ class Pipeline:
         self.seconds: dict[str, float] = {}
         self.validate()
 
+    def world_settings(self) -> WorldConfig:
+        return self.cfg.world if self.cfg.world is not None else default_world(self.cfg.tasks)
+
     # Stage configs, with the propagated fields filled in.
     def demos_config(self) -> DemosConfig:
         return dataclasses.replace(self.cfg.demos, tasks=self.cfg.tasks, output_dir=self.out / "demos")
 
     def eval_config(self, name: str, policy: PreTrainedConfig) -> EvalConfig:
         return dataclasses.replace(
-            self.cfg.eval, tasks=self.cfg.tasks, output_dir=self.out / "eval" / name, policy=policy
+            self.cfg.eval,
+            world=self.cfg.world,
+            tasks=self.cfg.tasks,
+            output_dir=self.out / "eval" / name,
+            policy=policy,
         )
 
     def train_threads(self) -> int | None:
@@ -148,7 +158,10 @@ class Pipeline:
         return self.cfg.train_threads or self.cfg.torch_threads
 
     def rsft_config(self, policy: PreTrainedConfig) -> RSFTConfig:
-        cfg = dataclasses.replace(self.cfg.rsft, tasks=self.cfg.tasks, output_dir=self.out / "rsft", policy=policy)
+        out = self.out / "rsft"
+        cfg = dataclasses.replace(
+            self.cfg.rsft, world=self.cfg.world, tasks=self.cfg.tasks, output_dir=out, policy=policy
+        )
         if self.cfg.train_threads:
             cfg = dataclasses.replace(cfg, train_threads=self.cfg.train_threads)
         if cfg.demo_fraction:  # the demonstrations IL trained on
@@ -157,7 +170,10 @@ class Pipeline:
         return cfg
 
     def spo_config(self, policy: PreTrainedConfig) -> SPOConfig:
-        cfg = dataclasses.replace(self.cfg.spo, tasks=self.cfg.tasks, output_dir=self.out / "spo", policy=policy)
+        out = self.out / "spo"
+        cfg = dataclasses.replace(
+            self.cfg.spo, world=self.cfg.world, tasks=self.cfg.tasks, output_dir=out, policy=policy
+        )
         if self.cfg.train_threads:
             cfg = dataclasses.replace(cfg, train_threads=self.cfg.train_threads)
         return cfg
@@ -167,7 +183,7 @@ class Pipeline:
         check_output_dir(self.out)
         self.demos_config().validate()
         self.cfg.il.validate()
-        describe = world_for(self.cfg.tasks).task_description
+        describe = self.world_settings().build(self.cfg.tasks, None, self.out).task_description
         stand_in = CSOConfig(tasks=[describe(t) for t in self.tasks], device="cpu")
         stand_in.pretrained_path = self.out / "il"
         self.eval_config("il", stand_in).validate()

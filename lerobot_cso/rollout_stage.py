@@ -1,14 +1,14 @@
 """The settings every rollout stage shares (evaluation, R-SFT, SPO), checked by one ``validate()``, and the one
 the training stages (R-SFT, SPO) add: their torch threads while they train.
 
-A rollout stage rolls a saved policy out on the tasks of one world (:mod:`lerobot_cso.rollout.world`):
-``--tasks`` names them, ``--sampling.temperature/top_k/greedy`` say how skills are drawn, ``--num_envs``,
-``--vectorization`` and ``--max_steps`` shape the rollouts.
+A rollout stage rolls a saved policy out on the tasks of one world (:mod:`lerobot_cso.worlds`): ``--world.type``
+chooses it (``metaworld``, ``libero``, ``robot``, or a plugin's; without it, the world whose tasks ``--tasks``
+names), ``--world.*`` are its own settings, ``--tasks`` names the tasks, ``--sampling.temperature/top_k/greedy``
+say how skills are drawn, ``--num_envs``, ``--vectorization`` and ``--max_steps`` shape the rollouts. The world is
+built once, by ``validate()``; :func:`stage_engine` gives a stage its rollout engine on it.
 
-``--robot.type=...`` (a LeRobot robot, e.g. ``piper_follower``) runs the stage on that robot with an operator in
-the loop instead (:mod:`lerobot_cso.rollout.robot`): ``--tasks`` is then the task instruction the policy was
-trained with, ``--teleop.type=...`` optionally drives the arm while the operator arranges the scene,
-``--operator.*`` says who labels the episodes and how long they run, ``--display_data=true`` shows them in rerun.
+``--world.type=robot --robot.type=...`` (a LeRobot robot, e.g. ``piper_follower``; ``--robot.type`` alone implies
+the world) runs the stage on that robot with an operator in the loop (:mod:`lerobot_cso.worlds.robot`).
 """
 
 from __future__ import annotations
@@ -19,20 +19,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-import lerobot.scripts.lerobot_record  # noqa: F401  (registers LeRobot's robots, teleoperators and cameras)
 import torch
-from lerobot.robots.config import RobotConfig
-from lerobot.teleoperators.config import TeleoperatorConfig
 
 from lerobot_cso.checkpoints import PolicyPathConfig
-from lerobot_cso.errors import UsageError, check_number, check_output_dir
-from lerobot_cso.rollout.engine import Sampling
-from lerobot_cso.rollout.operator import OperatorConfig
+from lerobot_cso.errors import UsageError, check_output_dir
+from lerobot_cso.rollout.engine import RolloutEngine, SkillPolicy, policy_cameras
 from lerobot_cso.rollout.pool import VECTORIZATIONS
-from lerobot_cso.rollout.world import World, world_for
+from lerobot_cso.sampling import Sampling
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
-
-ROBOT_FIELDS = ("robot", "teleop", "operator")  # settings of robot rollouts only
+from lerobot_cso.worlds.base import Rollouts, World, WorldConfig
+from lerobot_cso.worlds.registry import default_world
 
 
 @dataclass
@@ -47,6 +43,9 @@ class RolloutStageConfig(PolicyPathConfig):
     # Whether each decision keeps the encoders' inputs (SPO without the encoder freeze recomputes its contexts).
     keeps_inputs: ClassVar[bool] = False
 
+    # The world to roll out in (--world.type=metaworld|libero|robot, and its own --world.* settings); null: the
+    # world whose tasks --tasks names (LIBERO's for libero_* tasks, else MetaWorld).
+    world: WorldConfig | None = None
     # One task, a comma list, or a set of the world (MetaWorld: MT10, MT50, ML45-train, ML45-test).
     tasks: str = "MT10"
     output_dir: Path | None = None
@@ -56,49 +55,52 @@ class RolloutStageConfig(PolicyPathConfig):
     vectorization: str = "processes"
     # Episode cap of the rollouts (a failure runs to the cap); null: the world's horizon.
     max_steps: int | None = None
-    # A LeRobot robot to roll out on (with an operator) instead of a simulated world.
-    robot: RobotConfig | None = None
-    # Optional teleoperator that moves the robot while the operator arranges each scene.
-    teleop: TeleoperatorConfig | None = None
-    operator: OperatorConfig = field(default_factory=OperatorConfig)
-    # Show cameras, commanded vs measured joints and the current skill in rerun (robot rollouts).
-    display_data: bool = False
 
-    def world(self) -> World:
-        """The world the tasks belong to: the robot's when ``--robot.type`` is given."""
-        if self.robot is not None:
-            from lerobot_cso.rollout.robot import RobotWorld
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self._world: World | None = None
 
-            return RobotWorld(self)
-        return world_for(self.tasks)
+    def world_settings(self) -> WorldConfig:
+        """``--world``, or the world whose tasks ``--tasks`` names."""
+        return self.world if self.world is not None else default_world(self.tasks)
+
+    def rollout_world(self) -> World:
+        """The world the stage rolls out in, built once (by ``validate()``)."""
+        if self._world is None:
+            self._world = self.world_settings().build(self.tasks, self.policy, self.output_dir)
+        return self._world
 
     def stage_spec(self) -> dict[str, Any]:
-        """The settings the stage's output depends on: not the pipeline's fields nor ``display_data``, and the
-        robot's settings only when it runs on a robot."""
-        robot = () if self.robot is not None else ROBOT_FIELDS
-        spec = settings_spec(self, exclude=(*PIPELINE_FIELDS, "display_data", "train_threads", *robot))
-        if self.robot is not None:  # how the arm is reached and recovered does not change what an episode keeps
-            spec["robot"] = {"type": self.robot.type}
-        return spec
+        """The settings the stage's output depends on: not the pipeline's fields, and of the world only what its
+        episodes depend on (a simulated world's choice follows from the tasks; a robot's type, operator, teleop)."""
+        spec = settings_spec(self, exclude=(*PIPELINE_FIELDS, "world", "train_threads"))
+        return spec | settings_spec(self.world_settings().spec())
 
     def horizon(self) -> int:
         """The episode cap of the rollouts: ``max_steps``, or the world's horizon."""
-        return self.world().horizon if self.max_steps is None else self.max_steps
+        return self.rollout_world().horizon if self.max_steps is None else self.max_steps
+
+    def rollouts(self, cameras: tuple[str, ...]) -> Rollouts:
+        """What the stage asks of its world's backend, for a policy reading ``cameras``."""
+        return Rollouts(
+            num_envs=self.num_envs,
+            vectorization=self.vectorization,
+            horizon=self.horizon(),
+            max_steps=self.max_steps,
+            frames="all" if self.records_frames else "decisions",
+            cameras=cameras,
+            features=policy_features(self),
+        )
 
     def validate(self) -> list[str]:
-        """Check the shared settings; returns the resolved task list. Raises ``UsageError``."""
+        """Check the shared settings and build the world; returns the resolved task list. Raises ``UsageError``."""
         if self.policy is None or self.policy.pretrained_path is None:
             raise UsageError(f"--policy.path is required ({self.policy_role})")
-        if self.robot is not None:
-            from lerobot_cso.rollout.robot import check_policy_fits
-
-            self.operator.validate()
-            if self.output_dir is None:
-                raise UsageError("--output_dir is required with --robot.type (the episodes are journaled there)")
-            check_policy_fits(self.robot, self.policy)
+        self.world_settings().validate()
         if self.output_dir is not None:
             check_output_dir(self.output_dir)
-        world = self.world()
+        self._world = None
+        world = self.rollout_world()
         try:
             tasks = world.resolve_tasks(self.tasks)
         except ValueError as e:
@@ -109,8 +111,7 @@ class RolloutStageConfig(PolicyPathConfig):
             raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:
             raise UsageError(f"max_steps must be in [1, {world.horizon}], got {self.max_steps}")
-        check_number("sampling.temperature", self.sampling.temperature, gt=0)
-        check_number("sampling.top_k", self.sampling.top_k, ge=1, optional=True)
+        self.sampling.check("sampling.")
         known = getattr(self.policy, "tasks", None)  # the task strings a language/one-hot policy was trained on
         unknown = [t for t in tasks if known and world.task_description(t) not in known]
         if unknown:
@@ -118,6 +119,21 @@ class RolloutStageConfig(PolicyPathConfig):
                 f"the policy was not trained on {', '.join(unknown)}; it knows: {'; '.join(map(repr, known))}"
             )
         return tasks
+
+
+def policy_features(settings: RolloutStageConfig) -> dict[str, Any]:
+    """The input features of the stage's policy (none when the settings carry no policy config)."""
+    return getattr(settings.policy, "input_features", None) or {}
+
+
+def stage_engine(
+    policy: SkillPolicy, preprocessor: Any, postprocessor: Any, settings: RolloutStageConfig
+) -> RolloutEngine:
+    """The engine of a rollout stage: the backend of its world, with the cameras the policy reads, keeping each
+    decision's encoder inputs when the stage asks for them."""
+    world = settings.rollout_world()
+    backend = world.backend(settings.rollouts(tuple(policy_cameras(policy))))
+    return RolloutEngine(policy, preprocessor, postprocessor, backend, world.task_description, settings.keeps_inputs)
 
 
 @dataclass

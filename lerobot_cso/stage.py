@@ -14,7 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-PIPELINE_FIELDS = ("tasks", "output_dir", "policy")  # set by the pipeline for every stage, not part of a spec
+PIPELINE_FIELDS = ("tasks", "output_dir", "policy", "world")  # set by the pipeline for every stage, not part of a spec
 # Settings added after outputs had been recorded without them, at the values that behave as before they existed:
 # a record that lacks one is the same spec as one holding that value, so older outputs still resume (another
 # value is another spec). A new setting whose default keeps the old behaviour is added here with that default.
@@ -26,6 +26,23 @@ ADDED_SETTINGS: dict[str, Any] = {
     "video_episodes": 0,
     "encoder_freeze": True,
     "buffer_frames": "all",
+    "ratio": None,
+    "advantage": None,
+    "world": None,
+    # Settings of every rollout stage before they moved into the robot world (--world.type=robot), at their values
+    # on a simulated world: a record that holds them is the same spec as one without them.
+    "robot": None,
+    "teleop": None,
+    "display_data": False,
+    "operator": {
+        "type": "keyboard",
+        "script": None,
+        "episode_time_s": 30.0,
+        "rest_time_s": 3.0,
+        "rest_pose": None,
+        "fps": None,
+        "on_fault": "stop",
+    },
 }
 
 
@@ -78,8 +95,11 @@ class CheckpointStage:
 
 
 def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
-    """A config dataclass as plain JSON data, without the fields in ``exclude``."""
-    data = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in exclude}
+    """A config dataclass (or a dict of settings) as plain JSON data, without the fields in ``exclude``."""
+    if isinstance(config, dict):
+        data = {k: v for k, v in config.items() if k not in exclude}
+    else:
+        data = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in exclude}
     return json.loads(
         json.dumps(data, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
     )

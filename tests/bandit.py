@@ -20,9 +20,10 @@ from collections.abc import Callable, Collection, Sequence
 import torch
 from lerobot.envs.utils import preprocess_observation
 
-from lerobot_cso.envs.constants import STATE_DIM
-from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult, Sampling
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.constants import STATE_DIM
+from lerobot_cso.worlds.metaworld.tasks import task_description
 
 N_CLASSES = 3
 
@@ -66,9 +67,7 @@ class BanditEngine:
         batch = preprocess_observation(obs)
         batch["task"] = [task_description(t) for t in tasks]
         context = self.policy.encode_context(self.preprocessor(batch))
-        tokens, logprobs = self.policy.sample_skills(
-            context, sampling.temperature, sampling.top_k, sampling.greedy, generator
-        )
+        tokens, logprobs = self.policy.sample_skills(context, sampling, generator)
         n = self.policy.config.n_action_steps
         chunk = self.policy.decode_skills(tokens, n)
         actions = self.postprocessor(chunk.reshape(-1, chunk.shape[-1])).reshape(chunk.shape).float()

@@ -10,9 +10,10 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from tiny_data import TINY_POLICY_KWARGS
 
-from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.policy import CSOConfig, CSOPolicy
-from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult, Sampling
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.tasks import task_description
 
 TASKS = ("reach-v3", "button-press-v3")
 

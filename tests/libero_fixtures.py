@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.libero_env import ACTION_DIM, FPS, STATE_DIM, CSOLiberoEnv
+from lerobot_cso import seeds
+from lerobot_cso.worlds.libero.env import ACTION_DIM, FPS, STATE_DIM, CSOLiberoEnv
 
 DRAWER_TASK = "libero_goal-0"  # open the middle drawer of the cabinet: success is one joint's position
 DRAWER_REGION = "wooden_cabinet_1_middle_region"

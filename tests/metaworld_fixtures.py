@@ -10,8 +10,8 @@ from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from lerobot_cso.demos import DemosConfig, generate_demos
-from lerobot_cso.envs.constants import FPS
 from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.worlds.metaworld.constants import FPS
 
 TINY = {
     "ae_dim": 32,

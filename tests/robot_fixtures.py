@@ -68,7 +68,7 @@ def save_tiny_piper_policy(path: Path, state_dim: int = PIPER_STATE, camera: tup
 def write_script(
     path: Path, targets: dict[str, dict[str, float]], keys: dict[str, list], tolerance: float, gates: dict[str, str]
 ) -> Path:
-    """A ``--operator.type=scripted`` script (see :class:`lerobot_cso.rollout.operator.ScriptedOperator`)."""
+    """A ``--operator.type=scripted`` script (see :class:`lerobot_cso.worlds.robot.operator.ScriptedOperator`)."""
     path.write_text(json.dumps({"targets": targets, "keys": keys, "tolerance": tolerance, "gates": gates}))
     return path
 

@@ -21,18 +21,18 @@ import pytest
 import torch
 from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
 
-from lerobot_cso import cli
+from lerobot_cso import cli, rollout_stage
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig
 from lerobot_cso.demos import DemosConfig
 from lerobot_cso.durable import EpisodeJournal, output_lock
-from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig
 from lerobot_cso.policy.configuration_cso import CSOConfig
-from lerobot_cso.rollout.engine import RolloutEngine, Sampling
-from lerobot_cso.rollout.operator import OperatorConfig
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.robot.operator import OperatorConfig
 
 NAN, INF = math.nan, math.inf
 
@@ -133,7 +133,9 @@ def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
 def scripted_rollouts(monkeypatch):
     """Every stage rolls out on a ScriptedEngine (mixed outcomes) instead of MetaWorld."""
     monkeypatch.setattr(sys, "argv", list(sys.argv))
-    monkeypatch.setattr(RolloutEngine, "for_stage", lambda policy, pre, post, cfg: ScriptedEngine(mixed, policy=policy))
+    monkeypatch.setattr(
+        rollout_stage, "stage_engine", lambda policy, pre, post, cfg: ScriptedEngine(mixed, policy=policy)
+    )
 
 
 def test_standalone_spo_continues_only_what_it_can_honour(two_policies, tmp_path, capsys, scripted_rollouts):
@@ -203,7 +205,7 @@ def test_ctrl_c_is_one_line_saying_where_it_stopped_and_how_to_resume(two_polici
     """Issue 35, item 7: Ctrl-C printed a 30-45-line KeyboardInterrupt traceback."""
     monkeypatch.setattr(sys, "argv", list(sys.argv))
     crashing = lambda policy, pre, post, cfg: ScriptedEngine(mixed, crash_after=3, policy=policy)  # noqa: E731
-    monkeypatch.setattr(RolloutEngine, "for_stage", crashing)
+    monkeypatch.setattr(rollout_stage, "stage_engine", crashing)
     out = tmp_path / "spo"
     code, _, err = run_cli(
         ["spo", f"--policy.path={two_policies[0]}", f"--tasks={','.join(TASKS)}", f"--output_dir={out}"], capsys

@@ -8,6 +8,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.fast_prior import FastSkillSampler
+from lerobot_cso.sampling import Sampling
 
 N_CONTEXTS = 1000
 
@@ -39,17 +40,19 @@ def contexts(policy) -> torch.Tensor:
 
 def test_float32_sampler_greedy_tokens_equal_the_prior_on_1000_contexts(policy, contexts):
     with torch.inference_mode():
-        ref_tokens, ref_logp = policy.sample_skills(contexts, top_k=5, greedy=True)
-        tokens, logp = FastSkillSampler(policy.prior).sample(contexts, top_k=5, greedy=True)
+        ref_tokens, ref_logp = policy.sample_skills(contexts, Sampling(top_k=5, greedy=True))
+        tokens, logp = FastSkillSampler(policy.prior).sample(contexts, Sampling(top_k=5, greedy=True))
     assert (tokens == ref_tokens).all(dim=1).float().mean() >= 0.99
     torch.testing.assert_close(logp, ref_logp, atol=1e-4, rtol=0)
 
 
 def test_float32_sampler_draws_the_same_samples_from_the_same_generator(policy, contexts):
     with torch.inference_mode():
-        ref_tokens, ref_logp = policy.sample_skills(contexts, top_k=5, generator=torch.Generator().manual_seed(3))
+        ref_tokens, ref_logp = policy.sample_skills(
+            contexts, Sampling(top_k=5), generator=torch.Generator().manual_seed(3)
+        )
         sampler = FastSkillSampler(policy.prior)
-        tokens, logp = sampler.sample(contexts, top_k=5, generator=torch.Generator().manual_seed(3))
+        tokens, logp = sampler.sample(contexts, Sampling(top_k=5), generator=torch.Generator().manual_seed(3))
     same = (tokens == ref_tokens).all(dim=1)
     assert same.float().mean() >= 0.99
     torch.testing.assert_close(logp[same], ref_logp[same], atol=1e-4, rtol=0)
@@ -59,8 +62,8 @@ def test_int8_sampler_stays_near_fp32_but_is_not_equivalent(policy, contexts):
     """int8 weights miss the >= 99 % bar (measured: 85 % of greedy skills, max log-prob error 0.016 nats on the
     agreeing prefix, random init whose logits are flat); this bounds that, so a broken int8 path fails."""
     with torch.inference_mode():
-        ref_tokens, ref_logp = policy.sample_skills(contexts, top_k=5, greedy=True)
-        tokens, logp = FastSkillSampler(policy.prior, "int8").sample(contexts, top_k=5, greedy=True)
+        ref_tokens, ref_logp = policy.sample_skills(contexts, Sampling(top_k=5, greedy=True))
+        tokens, logp = FastSkillSampler(policy.prior, "int8").sample(contexts, Sampling(top_k=5, greedy=True))
     agreeing_prefix = (tokens != ref_tokens).float().cumsum(dim=1) == 0
     assert (tokens == ref_tokens).all(dim=1).float().mean() >= 0.8
     assert (logp - ref_logp)[agreeing_prefix].abs().max() <= 0.03

@@ -15,9 +15,8 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from metaworld_fixtures import DEMO_EPISODES, DEMO_TASKS, make_demos, shared_demos
 
-from lerobot_cso import cli
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.tasks import task_description
+from lerobot_cso import cli, seeds
+from lerobot_cso.worlds.metaworld.tasks import task_description
 
 
 @pytest.fixture(scope="module")

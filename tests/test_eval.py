@@ -12,8 +12,7 @@ from pathlib import Path
 import pytest
 from metaworld_fixtures import shared_policy
 
-from lerobot_cso import cli
-from lerobot_cso.envs import seeds
+from lerobot_cso import cli, seeds
 from lerobot_cso.evaluation import markdown_table, summarize
 
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1"}

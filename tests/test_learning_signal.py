@@ -17,7 +17,7 @@ from cso_fakes import TASKS, save_tiny_metaworld_policy
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft, spo
-from lerobot_cso.rollout.engine import Sampling
+from lerobot_cso.sampling import Sampling
 
 ITERATIONS = 12  # the stated budget: 12 iterations x 8 groups x K = 8
 
@@ -72,8 +72,8 @@ def test_spo_objective_learns_the_bandit(initial, tmp_path, objective):
 
 def test_sign_flipped_advantage_unlearns(initial, tmp_path, monkeypatch):
     path, answer = initial
-    original = spo.advantages_for
-    monkeypatch.setattr(spo, "advantages_for", lambda granularity, rewards: -original(granularity, rewards))
+    original = spo.advantages
+    monkeypatch.setattr(spo, "advantages", lambda estimator, rewards: -original(estimator, rewards))
     run_spo(path, tmp_path, answer, iterations=6)
     assert rate(answer, tmp_path / "pretrained_model") <= rate(answer, path) - 0.15
 

@@ -14,6 +14,7 @@ import dataclasses
 import importlib.metadata
 import json
 import os
+import subprocess
 import sys
 from functools import partial
 from pathlib import Path
@@ -34,18 +35,21 @@ from libero_fixtures import (
 )
 from tiny_data import TINY_POLICY_KWARGS
 
+from lerobot_cso import seeds
 from lerobot_cso.cli import main
 from lerobot_cso.cso.rsft import RSFTConfig
 from lerobot_cso.cso.spo import SPOConfig
 from lerobot_cso.demos import DemosConfig
-from lerobot_cso.envs import libero_env, libero_setup, seeds
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.il import ILConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, run_pipeline
 from lerobot_cso.rollout.backend import Job
-from lerobot_cso.rollout.libero import Libero
 from lerobot_cso.rollout.pool import EnvPool
-from lerobot_cso.rollout.world import MetaWorld, world_for
+from lerobot_cso.worlds.libero import env as libero_env
+from lerobot_cso.worlds.libero import setup as libero_setup
+from lerobot_cso.worlds.libero.world import Libero, LiberoConfig
+from lerobot_cso.worlds.metaworld.world import MetaWorldConfig
+from lerobot_cso.worlds.registry import default_world
 
 MAX_STEPS = 16  # episode cap of the pipeline's rollouts: the drawer opens at step 4 or never
 
@@ -69,6 +73,18 @@ def test_configuration_is_written_once_into_the_venv_and_links_the_wheels_assets
     assert libero_setup.configure() == folder and (folder / "config.yaml").stat().st_mtime_ns == mtime
 
 
+def test_lerobots_own_clis_find_libero_configured_by_the_plugin(tmp_path):
+    """``lerobot-eval --env.type=libero`` imports the plugins, then LIBERO: it must not stop at LIBERO's
+    interactive set-up question (``EOFError`` without a terminal) in a home that never configured LIBERO."""
+    code = "from lerobot.utils.import_utils import register_third_party_plugins as r; r(); import libero.libero"
+    env = {k: v for k, v in os.environ.items() if k != "LIBERO_CONFIG_PATH"} | {"HOME": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert not (tmp_path / ".libero").exists()
+
+
 def test_missing_asset_wheel_is_one_line_naming_the_package(monkeypatch):
     real = importlib.metadata.distribution
 
@@ -84,7 +100,8 @@ def test_missing_asset_wheel_is_one_line_naming_the_package(monkeypatch):
 
 
 def test_tasks_states_and_horizons_follow_the_paper_protocol():
-    assert isinstance(world_for("MT10"), MetaWorld) and isinstance(world_for("libero_10,libero_goal-3"), Libero)
+    assert isinstance(default_world("MT10"), MetaWorldConfig)
+    assert isinstance(default_world("libero_10,libero_goal-3"), LiberoConfig)
     world = Libero("libero_spatial,libero_10-2")
     tasks = world.resolve_tasks("libero_spatial,libero_10-2,libero_spatial-0")
     assert tasks == [f"libero_spatial-{i}" for i in range(10)] + ["libero_10-2"]
@@ -174,7 +191,7 @@ def test_decision_only_rendering_gives_the_same_decision_frames(env):
 
     # Through the pool: frames="decisions" hands the controller exactly those frames and records no images.
     pool = EnvPool(
-        1, CAMERAS, IMAGE, 16, "sync", frames="decisions", check_task=libero_env.parse_task,
+        1, CAMERAS, vectorization="sync", frames="decisions", check_task=libero_env.parse_task,
         env_factory=partial(libero_env.CSOLiberoEnv, DRAWER_TASK, CAMERAS, IMAGE, 16),
     )  # fmt: skip
     replay = _Replay(actions)

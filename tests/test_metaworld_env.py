@@ -12,9 +12,9 @@ from lerobot.envs.factory import make_env_config
 from lerobot.envs.utils import close_envs, preprocess_observation
 
 import lerobot_policy_cso  # noqa: F401  (registers cso_metaworld)
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv
-from lerobot_cso.envs.tasks import all_tasks, resolve_tasks, task_description, task_sets
+from lerobot_cso import seeds
+from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv
+from lerobot_cso.worlds.metaworld.tasks import all_tasks, resolve_tasks, task_description, task_sets
 
 
 def trajectory(env: CSOMetaWorldEnv, task: str, seed: int, steps: int = 25) -> np.ndarray:
@@ -198,7 +198,7 @@ def test_envs_of_a_task_share_one_renderer_and_render_what_their_own_would():
     np.testing.assert_array_equal(shared["pixels"]["corner2"], own.render()[::-1, ::-1])
     assert not np.array_equal(shared["pixels"]["corner2"], first.reset(seed=1)[0]["pixels"]["corner2"])
     own.close()
-    from lerobot_cso.envs import metaworld_env
+    from lerobot_cso.worlds.metaworld import env as metaworld_env
 
     assert metaworld_env._renderer("button-press-v3", 32, other.sim.model) is metaworld_env._renderer(
         "button-press-v3", 32, first.sim.model

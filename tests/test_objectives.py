@@ -13,9 +13,11 @@ import pytest
 import torch
 
 from lerobot_cso.cso.objectives import (
-    DEFAULT_CLIP,
+    PRESETS,
+    Advantage,
     Granularity,
-    advantages_for,
+    Objective,
+    advantages,
     clipped_surrogate_loss,
     default_clip,
     group_advantages,
@@ -58,7 +60,7 @@ def test_group_advantages_eq8():
     # group means 2/4 = 0.5 and 3/4 = 0.75
     expected = torch.tensor([[0.5, -0.5, -0.5, 0.5], [0.25, 0.25, 0.25, -0.75]])
     torch.testing.assert_close(group_advantages(REWARDS), expected)
-    torch.testing.assert_close(advantages_for("skill", REWARDS), expected)
+    torch.testing.assert_close(advantages("group_mean", REWARDS), expected)
 
 
 def test_leave_one_out_advantages():
@@ -66,7 +68,7 @@ def test_leave_one_out_advantages():
     # group 1 (sum 3): R=1 -> 1 - (3-1)/3 = 1/3;  R=0 -> 0 - 3/3 = -1
     expected = torch.tensor([[2 / 3, -2 / 3, -2 / 3, 2 / 3], [1 / 3, 1 / 3, 1 / 3, -1.0]])
     torch.testing.assert_close(leave_one_out_advantages(REWARDS), expected)
-    torch.testing.assert_close(advantages_for("ript", REWARDS), expected)
+    torch.testing.assert_close(advantages(Advantage.LEAVE_ONE_OUT, REWARDS), expected)
     # integer rewards are accepted
     torch.testing.assert_close(leave_one_out_advantages(REWARDS.long()), expected)
     with pytest.raises(ValueError):
@@ -107,9 +109,10 @@ def test_token_granularity():
     assert stats.approx_kl == pytest.approx(k3([1.5, 1.0, 0.5, 1.25, 0.6, 1.1]))
 
 
-def test_ript_granularity():
+def test_ript_is_the_token_ratio_at_its_own_clip():
     new, old, mask = make_logprobs(TOKEN_RATIOS, TOKEN_MASK)
-    loss, grad, stats = run(new, old, mask, TOKEN_ADV, "ript")
+    ript = PRESETS["ript"]
+    loss, grad, stats = run(new, old, mask, TOKEN_ADV, ript.granularity, ript.clip)
     # clip [0.8, 1.2]: as for token, but 1.25 is now clipped to 1.2 as well
     #   traj 0: 1.2 (clipped) + 1.0 + 0.5 + 1.2 (clipped);  traj 1: -0.4 (clipped) - 0.55
     # sum = 2.95; loss = -2.95 / 6
@@ -211,7 +214,7 @@ def test_padding_affects_neither_loss_nor_gradient(granularity):
 def test_surrogate_units_by_hand():
     mask = torch.tensor([[True, True, False], [True, False, False], [False, False, False]])
     counts = {g: int(surrogate_units(mask, 8, g)) for g in Granularity}
-    assert counts == {"token": 24, "ript": 24, "skill": 3, "trajectory": 2}
+    assert counts == {"token": 24, "skill": 3, "trajectory": 2}
 
 
 @pytest.mark.parametrize("granularity", list(Granularity))
@@ -256,10 +259,10 @@ def test_old_logprobs_get_no_gradient_and_identical_policies_give_unit_ratio():
 
 def test_default_clip_ranges():
     assert default_clip("skill") == (0.93, 1.15)
-    assert default_clip(Granularity.TOKEN) == (0.8, 1.28)
+    assert default_clip("token") == (0.8, 1.28)
     assert default_clip("trajectory") == (0.997, 1.004)
     assert default_clip("ript") == (0.8, 1.2)
-    assert set(DEFAULT_CLIP) == set(Granularity)
+    assert set(PRESETS) == {"skill", "token", "trajectory", "ript"}
     with pytest.raises(ValueError):
         default_clip("sequence")
 
@@ -269,3 +272,18 @@ def test_explicit_clip_overrides_default():
     # token granularity with RIPT's range reproduces the RIPT loss
     loss, _, stats = run(new, old, mask, TOKEN_ADV, "token", clip=(0.8, 1.2))
     assert loss == pytest.approx(-2.95 / 6) and stats.clip_fraction == pytest.approx(0.5)
+
+
+def test_the_presets_are_the_papers_objectives_as_three_independent_choices():
+    """``skill``, ``token`` and ``trajectory`` differ in their ratio only (and its clip); RIPT is the token ratio
+    with the leave-one-out advantage; every granularity pairs with every estimator."""
+    assert PRESETS["skill"] == Objective(Granularity.SKILL, Advantage.GROUP_MEAN, (0.93, 1.15))
+    assert {name: PRESETS[name].granularity for name in ("skill", "token", "trajectory")} == {
+        "skill": "skill",
+        "token": "token",
+        "trajectory": "trajectory",
+    }
+    assert {p.advantage for name, p in PRESETS.items() if name != "ript"} == {Advantage.GROUP_MEAN}
+    assert PRESETS["ript"] == Objective(Granularity.TOKEN, Advantage.LEAVE_ONE_OUT, (0.8, 1.2))
+    rewards = torch.tensor([[1.0, 0.0, 0.0]])
+    torch.testing.assert_close(advantages("leave_one_out", rewards), 1.5 * advantages("group_mean", rewards))

@@ -1,12 +1,12 @@
 """The keyboard operator and the teleoperated reset phase of a robot rollout (issue 11, "CSO on the real arm").
 
-:class:`~lerobot_cso.rollout.operator.KeyboardOperator` gets its keys from LeRobot's
+:class:`~lerobot_cso.worlds.robot.operator.KeyboardOperator` gets its keys from LeRobot's
 ``lerobot.utils.keyboard_input.create_key_listener(dispatch, controls_help=...)``: the unit tests replace that
 factory by a fake listener whose ``press`` calls the operator's ``dispatch`` with the names LeRobot's backends
 deliver ("enter", "space", "right", "esc", or a character); one test runs LeRobot's real terminal backend on a
 pseudo-terminal instead, so the names the operator maps are the ones LeRobot really sends.
 
-The :class:`~lerobot_cso.rollout.robot.RobotBackend` tests run whole episodes in this process on the simulated
+The :class:`~lerobot_cso.worlds.robot.backend.RobotBackend` tests run whole episodes in this process on the simulated
 PiPER firmware (python-can ``virtual`` buses) with the real ``piper_follower`` robot and ``piper_leader``
 teleoperator, all on one ``SimulatedClock`` (the backend's control-tick sleep moves that clock), so every tick
 is exact and a loaded machine cannot make the feedback stale. A scripted person presses keys on the fake
@@ -38,13 +38,16 @@ from piper_can.emulator import PiperEmulator
 from piper_can.firmware import EmulatorConfig, PiperFirmware
 from robot_fixtures import REST, TASK
 
-import lerobot_cso.rollout.operator as operator_module
-import lerobot_cso.rollout.robot as robot_module
+import lerobot_cso.worlds.robot.backend as robot_module
+import lerobot_cso.worlds.robot.devices as devices_module
+import lerobot_cso.worlds.robot.operator as operator_module
 from lerobot_cso.durable import EpisodeJournal
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout.backend import Job
-from lerobot_cso.rollout.operator import EpisodeInfo, KeyboardOperator, OperatorConfig, OperatorQuit, make_operator
-from lerobot_cso.rollout.robot import ArmFault, RobotBackend
+from lerobot_cso.worlds.robot.backend import RobotBackend
+from lerobot_cso.worlds.robot.config import RobotWorldConfig
+from lerobot_cso.worlds.robot.devices import ArmFault, Devices
+from lerobot_cso.worlds.robot.operator import EpisodeInfo, KeyboardOperator, OperatorConfig, OperatorQuit, make_operator
 
 HELP = KeyboardOperator.HELP
 QUIT = "stopped by the operator; rerun the same command to resume"
@@ -335,8 +338,8 @@ def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBack
     """``bench(teleop, script, rest_time_s, horizon, on_fault)`` -> a ``RobotBackend`` on the simulated arm(s), its
     operator the real ``KeyboardOperator`` played by a ``Person``, the robot and teleoperator recorded."""
     clock = SimulatedClock()
-    monkeypatch.setattr(robot_module, "make_robot_from_config", lambda config: PiperFollower(config, clock))
-    monkeypatch.setattr(robot_module, "make_teleoperator_from_config", lambda config: PiperLeader(config, clock))
+    monkeypatch.setattr(devices_module, "make_robot_from_config", lambda config: PiperFollower(config, clock))
+    monkeypatch.setattr(devices_module, "make_teleoperator_from_config", lambda config: PiperLeader(config, clock))
     # The backend's control tick (``precise_sleep`` until 1/fps after ``time.perf_counter()`` at its start)
     # on the simulated clock: the arms move while it sleeps.
     monkeypatch.setattr(robot_module, "precise_sleep", clock.sleep)
@@ -355,7 +358,7 @@ def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBack
             buses.append(can.Bus(interface="virtual", channel=leader_channel))
             state.leader = PiperEmulator(buses[-1], EmulatorConfig(role="leader"), clock)  # the default sines
             clock.every(state.leader.firmware.config.period_s, state.leader.step)
-        settings = SimpleNamespace(
+        config = RobotWorldConfig(
             robot=PiperFollowerConfig(
                 interface="virtual", channel=follower_channel, calibration_dir=tmp_path, motion_mode="position"
             ),
@@ -366,11 +369,9 @@ def bench(monkeypatch, tmp_path, keys) -> Iterator[Callable[..., tuple[RobotBack
                 type="keyboard", fps=FPS, rest_time_s=rest_time_s, rest_pose=list(REST), on_fault=on_fault
             ),
             display_data=False,
-            tasks=TASK,
-            policy=SimpleNamespace(pretrained_path=tmp_path / "policy"),
-            output_dir=tmp_path / "out",
         )
-        backend = RobotBackend(settings, cameras=(), fps=FPS, horizon=horizon)
+        world = config.build(TASK, None, tmp_path / "out")
+        backend = RobotBackend(Devices(config.robot, config.teleop), config.operator, world.journal(), (), FPS, horizon)
         state.made.append(backend)
         backend.operator = Person(backend.operator, keys[-1], script, state.log)
         record_calls(backend, state.log)

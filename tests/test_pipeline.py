@@ -153,16 +153,18 @@ def test_train_threads_reach_every_training_stage_but_no_spec(tiny_config):
         assert torch.get_num_threads() == 1
 
 
-def test_robot_only_settings_do_not_change_a_simulated_stages_spec(tiny_config):
-    """Operator and display settings have no effect in simulation, so changing them must not redo a stage."""
-    from lerobot_cso.rollout.operator import OperatorConfig
+def test_a_simulated_stages_spec_holds_no_world_settings(tiny_config):
+    """Naming the world the tasks imply must not redo a stage, and the robot's settings exist on the robot world
+    only (a simulated stage's spec has none of them)."""
+    from lerobot_cso.worlds.metaworld.world import MetaWorldConfig
 
     with open(tiny_config) as f:
         cfg = draccus.load(PipelineConfig, f)
     base = Pipeline(cfg).rsft_config(None)
-    other = dataclasses.replace(base, operator=OperatorConfig(episode_time_s=5.0), display_data=True)
-    assert other.stage_spec() == base.stage_spec()
-    assert "operator" not in base.stage_spec() and "epochs" in base.stage_spec()
+    named = dataclasses.replace(base, world=MetaWorldConfig())
+    assert named.stage_spec() == base.stage_spec()
+    assert not {"world", "robot", "teleop", "operator", "display_data"} & set(base.stage_spec())
+    assert "epochs" in base.stage_spec()
     assert dataclasses.replace(base, epochs=base.epochs + 1).stage_spec() != base.stage_spec()
 
 

@@ -12,6 +12,7 @@ from tiny_data import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.modeling_cso import masked_l1, skill_nll
 from lerobot_cso.policy.skill_prior import draw_tokens, filtered_log_probs
+from lerobot_cso.sampling import Sampling
 
 
 def tiny_config(**overrides) -> CSOConfig:
@@ -77,15 +78,17 @@ def test_teacher_forced_logprobs_equal_sampling_logprobs(policy):
 
 def test_logprobs_are_those_of_the_filtered_distribution(policy):
     context = policy.encode_context(batch_of(5))
-    tokens, logp = policy.sample_skills(context, temperature=0.5, top_k=3, generator=torch.Generator().manual_seed(2))
+    tokens, logp = policy.sample_skills(
+        context, Sampling(temperature=0.5, top_k=3), generator=torch.Generator().manual_seed(2)
+    )
     torch.testing.assert_close(
-        policy.token_logprobs(context, tokens, temperature=0.5, top_k=3), logp, atol=1e-5, rtol=0
+        policy.token_logprobs(context, tokens, Sampling(temperature=0.5, top_k=3)), logp, atol=1e-5, rtol=0
     )
     full = policy.token_logprobs(context, tokens)
     assert (logp > full).all()  # renormalising over 3 of 1000 codes raises every sampled token's probability
     # Top-k = 1 at any temperature is greedy: log-prob exactly 0.
-    tokens1, logp1 = policy.sample_skills(context, top_k=1, generator=torch.Generator().manual_seed(3))
-    greedy, _ = policy.sample_skills(context, greedy=True)
+    tokens1, logp1 = policy.sample_skills(context, Sampling(top_k=1), generator=torch.Generator().manual_seed(3))
+    greedy, _ = policy.sample_skills(context, Sampling(top_k=None, greedy=True))
     assert torch.equal(tokens1, greedy) and torch.all(logp1 == 0)
 
 

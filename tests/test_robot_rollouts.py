@@ -1,7 +1,7 @@
 """R-SFT, SPO, evaluation and deployment on the PiPER with an operator in the loop, without a robot.
 
 The real commands run as subprocesses against a ``piper-emulator`` process over udp_multicast, labelled by
-a scripted operator (:class:`~lerobot_cso.rollout.operator.ScriptedOperator`): success is a rule on the emulated
+a scripted operator (:class:`~lerobot_cso.worlds.robot.operator.ScriptedOperator`): success is a rule on the emulated
 arm's measured pose per arranged state, key presses are injected per (state, attempt, retry). The R-SFT
 collection is killed with SIGKILL and resumed, then hit by an e-stop sent on the bus (the episode is discarded)
 and resumed again with ``--robot.recovery=reset``; SPO is killed and resumed mid-iteration and its update may
@@ -381,7 +381,7 @@ def bad_input(arm, il_policy, other_policies, home, tmp_path_factory) -> dict[st
 @pytest.mark.parametrize(
     ("case", "code", "message"),
     [
-        ("unknown robot", 2, "error: argument --robot.type: invalid choice: 'nosuch' (choose from "),
+        ("unknown robot", 2, "error: argument --world.robot.type: invalid choice: 'nosuch' (choose from "),
         (
             "other features",
             2,

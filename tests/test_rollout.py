@@ -11,10 +11,12 @@ import torch
 from gymnasium.vector import AsyncVectorEnv
 from metaworld_fixtures import load_policy, shared_policy
 
-from lerobot_cso.envs.tasks import task_description
-from lerobot_cso.rollout.engine import Episode, RolloutEngine, Sampling
-from lerobot_cso.rollout.expert import ExpertController
-from lerobot_cso.rollout.pool import EnvPool, Job, kept_pools, open_pool
+from lerobot_cso.rollout.engine import Episode, RolloutEngine
+from lerobot_cso.rollout.pool import EnvPool, Job, kept_pools
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.expert import ExpertController
+from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
 STATES = [("reach-v3", 11), ("button-press-v3", 12)]
 MAX_STEPS = 48
@@ -36,7 +38,7 @@ def loaded(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def engine(loaded):
-    with RolloutEngine(*loaded, EnvPool(3, max_steps=MAX_STEPS), task_description) as eng:
+    with RolloutEngine(*loaded, metaworld_pool(3, max_steps=MAX_STEPS), task_description) as eng:
         yield eng
 
 
@@ -58,7 +60,7 @@ def assert_same_episodes(a: list[Episode], b: list[Episode]) -> None:
 def test_greedy_rollouts_are_deterministic(loaded, engine):
     first = engine.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=0).episodes
     again = engine.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=5).episodes  # seed only drives sampling
-    with RolloutEngine(*loaded, EnvPool(3, max_steps=MAX_STEPS), task_description) as fresh:
+    with RolloutEngine(*loaded, metaworld_pool(3, max_steps=MAX_STEPS), task_description) as fresh:
         other = fresh.rollout(STATES, k=2, sampling=Sampling(greedy=True), seed=0).episodes
     assert_same_episodes(first, again)
     assert_same_episodes(first, other)
@@ -88,7 +90,7 @@ def test_recorded_tokens_logprobs_and_actions_match_recomputation(loaded, engine
         assert e.decision_steps.tolist() == [n_act * d for d in range(decisions)]
         assert e.tokens.shape == (decisions, policy.config.n_tokens) and e.tokens.dtype == torch.int64
         assert e.states.shape == (e.length, 39) and e.actions.shape == (e.length, 4)
-        recomputed = policy.token_logprobs(e.contexts, e.tokens, temperature=sampling.temperature, top_k=sampling.top_k)
+        recomputed = policy.token_logprobs(e.contexts, e.tokens, sampling)
         assert recomputed.requires_grad
         torch.testing.assert_close(recomputed.detach(), e.logprobs, rtol=0, atol=1e-5)
         with torch.no_grad():
@@ -111,7 +113,7 @@ def test_async_env_workers_give_the_same_episodes_as_sync():
     jobs = [Job("reach-v3", 0), Job("reach-v3", 1), Job("button-press-v3", 0)]
     traces = {}
     for vectorization in ("sync", "async"):
-        with EnvPool(2, max_steps=30, vectorization=vectorization) as pool:
+        with metaworld_pool(2, max_steps=30, vectorization=vectorization) as pool:
             assert isinstance(pool.vec, AsyncVectorEnv) == (vectorization == "async")
             traces[vectorization] = dict(pool.run(jobs, ExpertController(2, noise_std=0.2, seed=0)))
     for i in range(len(jobs)):
@@ -124,11 +126,11 @@ def test_kept_pools_serve_later_stages_from_the_same_open_pool(loaded):
     with the same arguments, which gets the same episodes; other arguments get another pool; all close at the end."""
     greedy = Sampling(greedy=True)
     with kept_pools():
-        first = open_pool(3, max_steps=MAX_STEPS, workers=2)
+        first = metaworld_pool(3, max_steps=MAX_STEPS, workers=2)
         with RolloutEngine(*loaded, first, task_description) as stage:
             episodes = stage.rollout(STATES, k=2, sampling=greedy).episodes
-        second = open_pool(3, max_steps=MAX_STEPS, workers=2)
-        other = open_pool(3, max_steps=MAX_STEPS - 1, workers=2)
+        second = metaworld_pool(3, max_steps=MAX_STEPS, workers=2)
+        other = metaworld_pool(3, max_steps=MAX_STEPS - 1, workers=2)
         assert second.pool is first.pool and other.pool is not first.pool
         workers = first.pool.vec._processes
         assert all(p.is_alive() for p in workers)
@@ -137,7 +139,7 @@ def test_kept_pools_serve_later_stages_from_the_same_open_pool(loaded):
     for p in workers:
         p.join(timeout=10)
     assert not any(p.is_alive() for p in [*workers, *other.pool.vec._processes])
-    with open_pool(2, max_steps=MAX_STEPS, vectorization="sync") as outside:  # outside the block: a new pool
+    with metaworld_pool(2, max_steps=MAX_STEPS, vectorization="sync") as outside:  # outside the block: a new pool
         assert isinstance(outside, EnvPool)
 
 
@@ -152,7 +154,7 @@ def test_the_pool_asks_skip_when_a_jobs_turn_comes_and_runs_no_skipped_job():
         asked[job.key] = list(ended)
         return job.key == 3 or (job.key == 2 and bool(ended))
 
-    with EnvPool(2, max_steps=24, vectorization="sync") as pool:
+    with metaworld_pool(2, max_steps=24, vectorization="sync") as pool:
         for index, _ in pool.run(jobs, ExpertController(2, noise_std=0.2, seed=0), skip=skip):
             ended.append(index)
     assert sorted(ended) == [0, 1]
@@ -160,7 +162,7 @@ def test_the_pool_asks_skip_when_a_jobs_turn_comes_and_runs_no_skipped_job():
 
 
 def test_camera_frames_are_recorded_per_step(loaded):
-    with RolloutEngine(*loaded, EnvPool(2, ("corner2",), max_steps=10), task_description) as eng:
+    with RolloutEngine(*loaded, metaworld_pool(2, ("corner2",), max_steps=10), task_description) as eng:
         episodes = eng.rollout([("reach-v3", 0)], k=2, sampling=Sampling(greedy=True)).episodes
     for e in episodes:
         frames = e.images["corner2"]

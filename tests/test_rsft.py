@@ -18,10 +18,10 @@ from tiny_data import make_synthetic_dataset
 
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft
-from lerobot_cso.envs.tasks import task_description
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
-from lerobot_cso.rollout.engine import Sampling
+from lerobot_cso.sampling import Sampling
+from lerobot_cso.worlds.metaworld.tasks import task_description
 
 S = 1_000_000  # first R-SFT initial-state seed
 OUTCOMES = {  # (task, seed) -> samples that succeed

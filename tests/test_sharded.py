@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lerobot_cso.rollout.expert import ExpertController
-from lerobot_cso.rollout.pool import EnvPool, Job
+from lerobot_cso.rollout.pool import Job
+from lerobot_cso.worlds.metaworld.expert import ExpertController
+from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
 SEEDS = range(1_000_000, 1_000_003)
 JOBS = [Job(task, seed, (task, seed)) for task in ("reach-v3", "button-press-v3") for seed in SEEDS]
@@ -27,7 +28,7 @@ class RecordingExpert(ExpertController):
 
 def traces(vectorization: str, controller: ExpertController | None = None) -> dict:
     controller = controller or ExpertController(4, noise_std=0.2, seed=3)
-    with EnvPool(4, max_steps=40, vectorization=vectorization, workers=2) as pool:
+    with metaworld_pool(4, max_steps=40, vectorization=vectorization, workers=2) as pool:
         return {trace.job.key: trace for _, trace in pool.run(JOBS, controller)}
 
 
@@ -57,7 +58,7 @@ def test_the_two_lanes_of_a_sharded_pool_are_decided_in_turn():
 
 def test_a_run_left_early_leaves_the_pool_as_good_as_new():
     expected = traces("sync")
-    with EnvPool(4, max_steps=40, vectorization="processes", workers=2) as pool:
+    with metaworld_pool(4, max_steps=40, vectorization="processes", workers=2) as pool:
         run = pool.run(JOBS, ExpertController(4, noise_std=0.2, seed=3))
         next(run)  # the other lane's chunk is in flight now
         run.close()

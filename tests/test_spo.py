@@ -69,14 +69,14 @@ def test_dynamic_rejection_draws_new_states_until_b_groups(rsft_policy, tmp_path
 def test_batch_pads_decisions_and_broadcasts_group_advantages(rsft_policy, tmp_path):
     engine = ScriptedEngine(mixed)
     groups = [engine.rollout([("reach-v3", S + 1)], k=4).groups()[0]]
-    batch = spo.Batch.from_groups(groups, "skill")
+    batch = spo.Batch.from_groups(groups, "group_mean")
     # Lengths 20..23 steps -> 3 decisions each (steps 0, 8, 16); rewards 1,1,0,0 -> A = R - 0.5.
     assert batch.tokens.shape == (4, 3, 8) and batch.mask.all()
     torch.testing.assert_close(batch.advantages, torch.tensor([0.5, 0.5, -0.5, -0.5]))
-    loo = spo.Batch.from_groups(groups, "ript").advantages  # leave-one-out: 1 - 1/3, 0 - 2/3
+    loo = spo.Batch.from_groups(groups, "leave_one_out").advantages  # leave-one-out: 1 - 1/3, 0 - 2/3
     torch.testing.assert_close(loo, torch.tensor([2 / 3, 2 / 3, -2 / 3, -2 / 3]))
     # The rollouts keep contexts on the CPU; the batch goes to the policy's device ("meta" stands in for cuda).
-    on_device = spo.Batch.from_groups(groups, "skill", device="meta")
+    on_device = spo.Batch.from_groups(groups, "group_mean", device="meta")
     tensors = (on_device.contexts, on_device.tokens, on_device.mask, on_device.advantages)
     assert {t.device.type for t in tensors} == {"meta"}
     assert on_device.inputs == {} and on_device.tasks == []  # frozen encoders: only the cached contexts
@@ -211,5 +211,25 @@ def test_resume_keeps_the_pools_skip_memory(rsft_policy, tmp_path):
 def test_bad_objective_is_a_clear_error(rsft_policy, tmp_path):
     from lerobot_cso.errors import UsageError
 
-    with pytest.raises(UsageError, match="objective must be one of token, skill, trajectory, ript"):
+    with pytest.raises(UsageError, match="objective must be one of skill, token, trajectory, ript"):
         make_cfg(rsft_policy, tmp_path, objective="sequence").validate()
+    with pytest.raises(UsageError, match="ratio must be one of token, skill, trajectory or null, got 'ript'"):
+        make_cfg(rsft_policy, tmp_path, ratio="ript").validate()
+    with pytest.raises(UsageError, match="advantage must be one of group_mean, leave_one_out or null"):
+        make_cfg(rsft_policy, tmp_path, advantage="std").validate()
+
+
+def test_an_objectives_axes_override_its_preset_one_by_one(rsft_policy, tmp_path):
+    """``--objective`` names a preset; ``--ratio``, ``--advantage`` and ``--clip_low/high`` each replace one of its
+    choices. Left unset they are not part of the spec (outputs made before they existed still resume)."""
+    from lerobot_cso.cso.objectives import Advantage, Granularity, Objective
+    from lerobot_cso.stage import without_added_settings
+
+    cfg = make_cfg(rsft_policy, tmp_path, objective="ript")
+    assert cfg.loss_objective() == Objective(Granularity.TOKEN, Advantage.LEAVE_ONE_OUT, (0.8, 1.2))
+    mixed = make_cfg(rsft_policy, tmp_path, objective="ript", ratio="skill", clip_high=1.3)
+    assert mixed.loss_objective() == Objective(Granularity.SKILL, Advantage.LEAVE_ONE_OUT, (0.8, 1.3))
+    group = make_cfg(rsft_policy, tmp_path, advantage="group_mean")
+    assert group.loss_objective() == Objective(Granularity.SKILL, Advantage.GROUP_MEAN, (0.93, 1.15))
+    assert not {"ratio", "advantage"} & set(without_added_settings(cfg.stage_spec()))
+    assert without_added_settings(mixed.stage_spec())["ratio"] == "skill"

@@ -9,8 +9,14 @@ Shapes used throughout:
 
 Padded entries may hold any value (RIPT pads with 1.0; NaN is fine too): they are replaced by a zero
 log-ratio before anything else, so they reach neither the loss nor the gradient.
+
+An :class:`Objective` is three independent choices, as TRL separates ``importance_sampling_level`` from
+``loss_type``: the ratio's :class:`Granularity`, the :class:`Advantage` estimator and the clip range. ``skill``
+(SPO), ``token`` (GRPO), ``trajectory`` (GSPO) and ``ript`` (RIPT-VLA) are named presets of them
+(:data:`PRESETS`); a new objective is one more preset, a new estimator one more function of :data:`ESTIMATORS`.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -24,26 +30,48 @@ class Granularity(StrEnum):
     TOKEN = "token"  # GRPO/DAPO-style: one ratio per token
     SKILL = "skill"  # SPO (Eq. 9): one ratio per skill = the n_tokens tokens of one decision step
     TRAJECTORY = "trajectory"  # GSPO (Eq. 5): one length-normalised ratio per trajectory
-    RIPT = "ript"  # RIPT-VLA's released code: per-token ratio, symmetric clip 0.2, leave-one-out advantage
 
 
-# Clip bounds (1 - eps_low, 1 + eps_high) on the ratio, per granularity.
-DEFAULT_CLIP: dict[Granularity, tuple[float, float]] = {
+class Advantage(StrEnum):
+    """How a trajectory's advantage is estimated from its group's rewards."""
+
+    GROUP_MEAN = "group_mean"  # Eq. 8
+    LEAVE_ONE_OUT = "leave_one_out"  # RIPT's RLOO
+
+
+@dataclass(frozen=True)
+class Objective:
+    """A policy-optimisation objective: the ratio's granularity, the advantage estimator, the clip bounds
+    (1 - eps_low, 1 + eps_high) on the ratio."""
+
+    granularity: Granularity
+    advantage: Advantage
+    clip: tuple[float, float]
+
+
+PRESETS: dict[str, Objective] = {
+    # Paper E.2 / Table 9 best row; the clip is calibrated for the SUM of token log-ratios (`clipped_surrogate_loss`).
+    "skill": Objective(Granularity.SKILL, Advantage.GROUP_MEAN, (0.93, 1.15)),
     # DAPO's clip-higher, as the paper's token-level baseline (E.3; best row of Table 9).
-    Granularity.TOKEN: (0.8, 1.28),
-    # Paper E.2 / Table 9 best row; calibrated for the SUM of token log-ratios (`clipped_surrogate_loss`).
-    Granularity.SKILL: (0.93, 1.15),
+    "token": Objective(Granularity.TOKEN, Advantage.GROUP_MEAN, (0.8, 1.28)),
     # Paper E.3 (best row of Table 9). E.3 calls this GSPO's "official" range, but the GSPO paper uses
     # eps_low = 3e-4, eps_high = 4e-4, i.e. (0.9997, 1.0004), which Table 9 lists as a worse setting.
-    Granularity.TRAJECTORY: (0.997, 1.004),
-    # RIPT-VLA config: ppo_clip_range = ppo_clip_high = 0.2.
-    Granularity.RIPT: (0.8, 1.2),
+    "trajectory": Objective(Granularity.TRAJECTORY, Advantage.GROUP_MEAN, (0.997, 1.004)),
+    # RIPT-VLA's released code: per-token ratio, leave-one-out advantage, ppo_clip_range = ppo_clip_high = 0.2.
+    "ript": Objective(Granularity.TOKEN, Advantage.LEAVE_ONE_OUT, (0.8, 1.2)),
 }
 
 
-def default_clip(granularity: Granularity | str) -> tuple[float, float]:
-    """Default (lower, upper) ratio clip bounds of a granularity."""
-    return DEFAULT_CLIP[Granularity(granularity)]
+def preset(name: str) -> Objective:
+    """The objective named ``name``; ``ValueError`` naming the presets otherwise."""
+    if name not in PRESETS:
+        raise ValueError(f"objective must be one of {', '.join(PRESETS)}, got '{name}'")
+    return PRESETS[name]
+
+
+def default_clip(name: str) -> tuple[float, float]:
+    """The (lower, upper) ratio clip bounds of the objective ``name``."""
+    return preset(name).clip
 
 
 def _as_float_groups(rewards: Tensor) -> Tensor:
@@ -70,11 +98,15 @@ def leave_one_out_advantages(rewards: Tensor) -> Tensor:
     return rewards - (rewards.sum(dim=1, keepdim=True) - rewards) / (k - 1)
 
 
-def advantages_for(granularity: Granularity | str, rewards: Tensor) -> Tensor:
-    """The advantage estimator each granularity is paired with: leave-one-out for `ript`, Eq. 8 otherwise."""
-    if Granularity(granularity) is Granularity.RIPT:
-        return leave_one_out_advantages(rewards)
-    return group_advantages(rewards)
+ESTIMATORS: dict[Advantage, Callable[[Tensor], Tensor]] = {
+    Advantage.GROUP_MEAN: group_advantages,
+    Advantage.LEAVE_ONE_OUT: leave_one_out_advantages,
+}
+
+
+def advantages(estimator: Advantage | str, rewards: Tensor) -> Tensor:
+    """The advantages (G, K) of an estimator for rewards (G, K)."""
+    return ESTIMATORS[Advantage(estimator)](rewards)
 
 
 def reject_uniform_groups(rewards: Tensor) -> Tensor:
@@ -108,7 +140,7 @@ class SurrogateStats:
 def surrogate_units(decision_mask: Tensor, n_tokens: int, granularity: Granularity | str) -> Tensor:
     """How many units (tokens, skills or trajectories) :func:`clipped_surrogate_loss` averages over."""
     granularity = Granularity(granularity)
-    if granularity in (Granularity.TOKEN, Granularity.RIPT):
+    if granularity is Granularity.TOKEN:
         return decision_mask.sum() * n_tokens
     if granularity is Granularity.SKILL:
         return decision_mask.sum()
@@ -131,7 +163,8 @@ def clipped_surrogate_loss(
     processes' losses add up to the minibatch's. The stats always refer to this batch.
 
     Per valid unit u with ratio r_u and its trajectory's advantage A: objective_u = min(r_u A, clip(r_u) A),
-    with clip bounds `clip` or `default_clip(granularity)`. `old_logprobs` is treated as a constant.
+    with clip bounds `clip` or those of the preset of the granularity's name (`default_clip`). `old_logprobs` is
+    treated as a constant.
 
     - ``skill`` (SPO, Eq. 9): r(Z_t) = exp(sum_j [log pi(z_t^j) - log pi_old(z_t^j)]) over the n_tokens
       tokens of decision t. The SUM (not the mean) is the literal reading of Eq. 7, pi(Z_t) = prod_j
@@ -145,15 +178,14 @@ def clipped_surrogate_loss(
       the gradient direction is exactly Eq. 9's (every skill weighted equally, longer trajectories contribute
       more skills), while the scale stays O(|A|) whatever the horizon, so the learning rate and gradient
       clipping do not depend on episode length.
-    - ``token`` (GRPO/DAPO): one ratio per token, token-mean over the valid tokens of the batch.
-    - ``ript`` (RIPT-VLA's released code): the same per-token ratio and token-mean as ``token``, with the
-      symmetric clip 0.2; pair it with `leave_one_out_advantages` (see `advantages_for`).
+    - ``token`` (GRPO/DAPO; RIPT-VLA's released code too, with the symmetric clip 0.2 and
+      `leave_one_out_advantages`): one ratio per token, token-mean over the valid tokens of the batch.
     - ``trajectory`` (GSPO, Eq. 5 with GSPO's length normalisation): r(tau) = exp(mean of the token log-ratios
       over all valid tokens of the trajectory), the geometric mean of the token ratios; mean over the
       trajectories that have at least one valid decision (GSPO's sequence mean).
     """
     granularity = Granularity(granularity)
-    lower, upper = default_clip(granularity) if clip is None else clip
+    lower, upper = default_clip(granularity.value) if clip is None else clip
     if new_logprobs.ndim != 3 or new_logprobs.shape != old_logprobs.shape:
         raise ValueError("new/old log-probs must both have shape (N, D_max, n_tokens)")
     if decision_mask.shape != new_logprobs.shape[:2] or advantages.shape != new_logprobs.shape[:1]:
@@ -163,7 +195,7 @@ def clipped_surrogate_loss(
     token_log_ratio = torch.where(token_mask, new_logprobs - old_logprobs.detach(), 0.0)
     advantages = advantages.detach().to(token_log_ratio.dtype)
 
-    if granularity in (Granularity.TOKEN, Granularity.RIPT):
+    if granularity is Granularity.TOKEN:
         log_ratio, unit_mask = token_log_ratio, token_mask
         unit_adv = advantages[:, None, None].expand_as(log_ratio)
     elif granularity is Granularity.SKILL:

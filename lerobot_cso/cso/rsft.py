@@ -42,18 +42,18 @@ from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
 from tqdm import tqdm
 
-from lerobot_cso import distributed
+from lerobot_cso import distributed, rollout_stage, seeds
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import group_advantages
 from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
-from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
 from lerobot_cso.records import run_alone
-from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine, Sampling
+from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
+from lerobot_cso.sampling import Sampling
 from lerobot_cso.stage import CheckpointStage, without_added_settings
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
@@ -118,7 +118,7 @@ class RSFTConfig(TrainingStageConfig):
         tasks = super().validate()
         if self.buffer_frames not in BUFFER_FRAMES:
             raise UsageError(f"buffer_frames must be one of {', '.join(BUFFER_FRAMES)}, got '{self.buffer_frames}'")
-        if self.robot is not None and not self.records_frames:
+        if not self.world_settings().simulated and not self.records_frames:
             raise UsageError("--buffer_frames=decisions is for simulated worlds: a robot's cameras give every frame")
         for name in ("successes_per_task", "n_strikes", "states_per_round", "max_states_per_task", "batch_size"):
             if getattr(self, name) < 1:
@@ -207,7 +207,7 @@ def collection_report(journal: Journal, tasks: list[str]) -> dict[str, dict[str,
 
 def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: Journal) -> None:
     """Roll out until every task holds ``successes_per_task`` successes (Algorithm 1, lines 2–9)."""
-    sampling, world, main = cfg.sampling, cfg.world(), distributed.is_main()
+    sampling, world, main = cfg.sampling, cfg.rollout_world(), distributed.is_main()
     if main:  # the journal is written by the main process alone; the others read it after each round
         for task in tasks:
             journal.drop_unrecorded(task)
@@ -289,14 +289,21 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     work = cfg.output_dir / "buffer.tmp"
     shutil.rmtree(work, ignore_errors=True)
     files = [p for t in tasks for p in journal.episode_files(t)]
-    world = cfg.world()
+    world = cfg.rollout_world()
     with np.load(files[0]) as first:
         cameras = sorted(k.removeprefix("image_") for k in first.files if k.startswith("image_"))
         image_shapes = {cam: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
         dims = first["states"].shape[-1], first["actions"].shape[-1]
     features = buffer_features(*dims, n_tokens, image_shapes)
     ds = LeRobotDataset.create(
-        cfg.repo_id, world.fps, features, root=work, robot_type=world.robot_type, use_videos=False, video_backend="pyav"
+        cfg.repo_id,
+        world.fps,
+        features,
+        root=work,
+        robot_type=world.robot_type,
+        use_videos=False,
+        video_backend="pyav",
+        image_writer_threads=4 if cameras else 0,  # PNG encoding of camera frames, as the demos write theirs
     )
     for path in tqdm(files, desc="writing R-SFT buffer", leave=False):
         task = path.parent.name
@@ -383,6 +390,49 @@ def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list
     return DecisionItems(frames, keys, torch.cat(tokens))
 
 
+def _fine_tune_items(
+    cfg: RSFTConfig, policy: CSOPolicy, pre: Any, ds: LeRobotDataset, starts: np.ndarray
+) -> torch.utils.data.Dataset:
+    """The fine-tune's items: the buffer's decision frames, plus ``demo_fraction`` of demonstration frames."""
+    items: torch.utils.data.Dataset = torch.utils.data.Subset(in_memory(ds), starts.tolist())
+    if cfg.demo_fraction:
+        keys = [*policy.config.input_features, "task"]
+        count = round(len(starts) * cfg.demo_fraction / (1 - cfg.demo_fraction))
+        demos = demo_decisions(cfg, policy, pre, keys, count)
+        print(f"R-SFT fine-tune: {len(starts)} buffer decisions + {len(demos)} demonstration frames", flush=True)
+        items = torch.utils.data.ConcatDataset([DecisionItems(items, keys), demos])
+    return items
+
+
+def _advantage_sampler(
+    cfg: RSFTConfig, ds: LeRobotDataset, starts: np.ndarray, n_items: int, generator: torch.Generator
+) -> torch.utils.data.Sampler:
+    """``advantage_weighted``: draws each buffer decision in proportion to its success's Eq. 8 advantage (the
+    demonstration frames at the buffer's mean weight)."""
+    journal = Journal(cfg.output_dir / "journal", cfg.spec())
+    columns = ds.hf_dataset.select(starts.tolist())
+    tasks = [str(t) for t in columns[TASK_KEY]]
+    weights = success_advantages(
+        tasks, [int(np.ravel(s)[0]) for s in columns[SEED_KEY]], {t: journal.states(t) for t in set(tasks)}
+    )
+    if not weights.sum() > 0:
+        raise UsageError("--advantage_weighted=true: every kept success is from a state solved on all its attempts")
+    print(f"R-SFT fine-tune: {int((weights > 0).sum())} of {len(weights)} decisions have weight > 0", flush=True)
+    if cfg.demo_fraction:  # each demonstration frame at the buffer's mean weight keeps their share
+        weights = torch.cat([weights, weights.mean().repeat(n_items - len(weights))])
+    return torch.utils.data.WeightedRandomSampler(weights, n_items, replacement=True, generator=generator)
+
+
+def _epoch_meters() -> dict[str, AverageMeter]:
+    """Fresh meters per epoch: the tracker adds the policy's own (nll, token_acc) to this dict, and a later tracker
+    would treat those as the caller's and never update them."""
+    meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
+    meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
+    if torch.cuda.is_available():  # LeRobot's update_policy then records the peak GPU memory, as lerobot-train
+        meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
+    return meters
+
+
 def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     """Eq. 6 on the buffer's decision frames, then freeze the encoders and save the checkpoint.
 
@@ -393,7 +443,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
     policy.set_encoders_frozen(False)
     # Action chunks are only read by QueST's optional decoder loss (and cost LeRobot a query per frame).
-    chunk = {"action": [i / cfg.world().fps for i in range(policy.config.chunk_size)]}
+    chunk = {"action": [i / cfg.rollout_world().fps for i in range(policy.config.chunk_size)]}
     ds = LeRobotDataset(
         cfg.repo_id,
         root=buffer,
@@ -401,28 +451,9 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
         video_backend="pyav",  # as the demos: skips probing torchcodec (a traceback per load where it cannot load)
     )
     starts = np.flatnonzero(np.asarray(ds.hf_dataset[SKILL_START_KEY]).reshape(-1) == 1)
-    items: torch.utils.data.Dataset = torch.utils.data.Subset(in_memory(ds), starts.tolist())
-    if cfg.demo_fraction:
-        keys = [*policy.config.input_features, "task"]
-        count = round(len(starts) * cfg.demo_fraction / (1 - cfg.demo_fraction))
-        demos = demo_decisions(cfg, policy, pre, keys, count)
-        print(f"R-SFT fine-tune: {len(starts)} buffer decisions + {len(demos)} demonstration frames", flush=True)
-        items = torch.utils.data.ConcatDataset([DecisionItems(items, keys), demos])
+    items = _fine_tune_items(cfg, policy, pre, ds, starts)
     generator = torch.Generator().manual_seed(cfg.seed)
-    sampler = None
-    if cfg.advantage_weighted:
-        journal = Journal(cfg.output_dir / "journal", cfg.spec())
-        columns = ds.hf_dataset.select(starts.tolist())
-        tasks = [str(t) for t in columns[TASK_KEY]]
-        weights = success_advantages(
-            tasks, [int(np.ravel(s)[0]) for s in columns[SEED_KEY]], {t: journal.states(t) for t in set(tasks)}
-        )
-        if not weights.sum() > 0:
-            raise UsageError("--advantage_weighted=true: every kept success is from a state solved on all its attempts")
-        print(f"R-SFT fine-tune: {int((weights > 0).sum())} of {len(weights)} decisions have weight > 0", flush=True)
-        if cfg.demo_fraction:  # each demonstration frame at the buffer's mean weight keeps their share
-            weights = torch.cat([weights, weights.mean().repeat(len(items) - len(weights))])
-        sampler = torch.utils.data.WeightedRandomSampler(weights, len(items), replacement=True, generator=generator)
+    sampler = _advantage_sampler(cfg, ds, starts, len(items), generator) if cfg.advantage_weighted else None
     loader = torch.utils.data.DataLoader(
         items,
         batch_size=cfg.batch_size,
@@ -449,13 +480,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     if start_epoch:
         accelerator.load_state(state.directory)
     for epoch in range(start_epoch, cfg.epochs):
-        # Fresh meters per epoch: the tracker adds the policy's own (nll, token_acc) to this dict, and a later
-        # tracker would treat those as the caller's and never update them.
-        meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
-        meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
-        if torch.cuda.is_available():  # LeRobot's update_policy then records the peak GPU memory, as lerobot-train
-            meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
-        tracker = MetricsTracker(cfg.batch_size, len(items), ds.num_episodes, meters, epoch * len(loader))
+        tracker = MetricsTracker(cfg.batch_size, len(items), ds.num_episodes, _epoch_meters(), epoch * len(loader))
         for batch in tqdm(loader, desc=f"R-SFT epoch {epoch + 1}/{cfg.epochs}", leave=False):
             tracker, _ = update_policy(
                 tracker, policy, pre(batch), optimizer, optimizer_cfg.grad_clip_norm, accelerator, scheduler
@@ -473,7 +498,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     return out
 
 
-def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine.for_stage) -> dict[str, Any]:
+def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] | None = None) -> dict[str, Any]:
     """Collect (resumable), write the buffer, optionally push it, fine-tune; returns the collection report.
 
     ``make_engine(policy, preprocessor, postprocessor, cfg)`` builds the rollout engine.
@@ -492,7 +517,7 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] = Rollou
     journal = Journal(cfg.output_dir / "journal", cfg.spec())
     if not (cfg.output_dir / "buffer" / "meta" / "info.json").is_file():
         policy, pre, post = load_policy(cfg.policy.pretrained_path, cfg.policy)
-        with distributed.ShardedRollouts(make_engine(policy, pre, post, cfg)) as engine:
+        with distributed.ShardedRollouts((make_engine or rollout_stage.stage_engine)(policy, pre, post, cfg)) as engine:
             collect(cfg, tasks, engine, journal)
         if main:
             write_buffer(cfg, tasks, journal, policy.config.n_tokens)
@@ -524,7 +549,7 @@ class RSFTStage(CheckpointStage):
     name = "rsft"
 
     def run(self) -> dict[str, Any]:
-        return run_rsft(self.cfg, self.make_engine or RolloutEngine.for_stage)
+        return run_rsft(self.cfg, self.make_engine)
 
 
 @parser.wrap()

@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import matplotlib
 import numpy as np
@@ -38,23 +38,25 @@ import torch
 from lerobot.configs import parser
 from lerobot.configs.default import WandBConfig
 
-from lerobot_cso import distributed
+from lerobot_cso import distributed, rollout_stage, seeds
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import (
+    PRESETS,
+    Advantage,
     Granularity,
-    advantages_for,
+    Objective,
+    advantages,
     clipped_surrogate_loss,
-    default_clip,
     reject_uniform_groups,
     surrogate_units,
 )
 from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
-from lerobot_cso.envs import seeds
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
+from lerobot_cso.sampling import Sampling
 from lerobot_cso.stage import CheckpointStage
 
 LOG_COLUMNS = (
@@ -92,8 +94,13 @@ class SPOConfig(TrainingStageConfig):
     records_frames: ClassVar[bool] = False  # the update reads the cached encoder contexts only
 
     output_dir: Path = Path("outputs/spo")
-    # token (GRPO) | skill (SPO, Eq. 9) | trajectory (GSPO) | ript
+    # The objective's preset: skill (SPO, Eq. 9) | token (GRPO) | trajectory (GSPO) | ript (RIPT-VLA); each names
+    # a ratio granularity, an advantage estimator and a clip range, which the next settings override one by one.
     objective: str = "skill"
+    # The ratio's granularity: token | skill | trajectory; null: the preset's.
+    ratio: str | None = None
+    # The advantage estimator: group_mean (Eq. 8) | leave_one_out (RIPT); null: the preset's.
+    advantage: str | None = None
     iterations: int = 30  # M
     groups_per_iteration: int = 150  # B
     group_size: int = 8  # K
@@ -125,8 +132,12 @@ class SPOConfig(TrainingStageConfig):
 
     def validate(self) -> list[str]:
         tasks = super().validate()
-        if self.objective not in set(Granularity):
-            raise UsageError(f"objective must be one of {', '.join(Granularity)}, got '{self.objective}'")
+        if self.objective not in PRESETS:
+            raise UsageError(f"objective must be one of {', '.join(PRESETS)}, got '{self.objective}'")
+        if self.ratio not in (None, *Granularity):
+            raise UsageError(f"ratio must be one of {', '.join(Granularity)} or null, got '{self.ratio}'")
+        if self.advantage not in (None, *Advantage):
+            raise UsageError(f"advantage must be one of {', '.join(Advantage)} or null, got '{self.advantage}'")
         for name in ("iterations", "groups_per_iteration", "epochs", "minibatch_trajectories", "max_draw_factor"):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -141,9 +152,9 @@ class SPOConfig(TrainingStageConfig):
         check_number("grad_clip_norm", self.grad_clip_norm, gt=0)
         check_number("target_kl", self.target_kl, gt=0, optional=True)
         check_number("ratio_top_k", self.ratio_top_k, ge=1, optional=True)
-        if not self.encoder_freeze and self.robot is not None:
+        if not self.encoder_freeze and not self.world_settings().simulated:
             raise UsageError("--encoder_freeze=false (the ablation) runs in simulation only, not on a robot")
-        low, high = self.clip()
+        low, high = self.loss_objective().clip
         check_number("clip_low", low, gt=0, le=1)
         check_number("clip_high", high, ge=1)
         return tasks
@@ -153,9 +164,19 @@ class SPOConfig(TrainingStageConfig):
         """Without the freeze the updates recompute the contexts, so the rollouts keep the encoders' inputs."""
         return not self.encoder_freeze
 
-    def clip(self) -> tuple[float, float]:
-        low, high = default_clip(self.objective)
-        return (low if self.clip_low is None else self.clip_low, high if self.clip_high is None else self.clip_high)
+    def ratio_sampling(self) -> Sampling:
+        """The distribution the ratios are taken under: the sampling temperature, top-k ``ratio_top_k``."""
+        return Sampling(self.sampling.temperature, self.ratio_top_k)
+
+    def loss_objective(self) -> Objective:
+        """The preset ``objective`` with the axes these settings override."""
+        base = PRESETS[self.objective]
+        low, high = base.clip
+        return Objective(
+            Granularity(self.ratio or base.granularity),
+            Advantage(self.advantage or base.advantage),
+            (low if self.clip_low is None else self.clip_low, high if self.clip_high is None else self.clip_high),
+        )
 
 
 @dataclass
@@ -172,7 +193,9 @@ class Batch:
     tasks: list[str] = field(default_factory=list)
 
     @classmethod
-    def from_groups(cls, groups: list[list[Episode]], objective: str, device: torch.device | str = "cpu") -> "Batch":
+    def from_groups(
+        cls, groups: list[list[Episode]], estimator: Advantage, device: torch.device | str = "cpu"
+    ) -> "Batch":
         """The groups' episodes padded to the longest, on ``device`` (the policy's: rollouts keep them on the CPU)."""
         episodes = [e for g in groups for e in g]
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
@@ -187,8 +210,8 @@ class Batch:
             contexts[i, :d], tokens[i, :d], mask[i, :d] = e.contexts, e.tokens, True
             for key, value in e.inputs.items():
                 inputs[key][i, :d] = value
-        advantages = advantages_for(objective, rewards).reshape(-1)
-        tensors = (t.to(device) for t in (contexts, tokens, mask, advantages))
+        adv = advantages(estimator, rewards).reshape(-1)
+        tensors = (t.to(device) for t in (contexts, tokens, mask, adv))
         tasks = [e.task_description for e in episodes] if inputs else []
         return cls(*tensors, {k: v.to(device) for k, v in inputs.items()}, tasks)
 
@@ -204,13 +227,12 @@ def decision_contexts(policy: CSOPolicy, batch: Batch, rows: torch.Tensor) -> to
     return policy.encode_context({k: v[rows][mask] for k, v in batch.inputs.items()} | {"task": tasks})
 
 
-def padded_logprobs(
-    policy: CSOPolicy, batch: Batch, rows: torch.Tensor, temperature: float, top_k: int | None
-) -> torch.Tensor:
-    """Teacher-forced per-token log-probs (len(rows), D, n) of the valid decisions; zeros where padded."""
+def padded_logprobs(policy: CSOPolicy, batch: Batch, rows: torch.Tensor, sampling: Sampling) -> torch.Tensor:
+    """Teacher-forced per-token log-probs (len(rows), D, n) of the valid decisions under ``sampling``'s
+    distribution; zeros where padded."""
     tokens, mask = batch.tokens[rows], batch.mask[rows]
     out = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
-    out[mask] = policy.token_logprobs(decision_contexts(policy, batch, rows), tokens[mask], temperature, top_k)
+    out[mask] = policy.token_logprobs(decision_contexts(policy, batch, rows), tokens[mask], sampling)
     return out
 
 
@@ -229,7 +251,7 @@ def draw_states(
     ``(p // T)``-th state, skipping those with ``skip_until[p] > iteration``, at most one pass per call (so
     fewer than ``n`` when the pool is exhausted).
     """
-    world = cfg.world()
+    world = cfg.rollout_world()
     if cfg.state_pool is None:
         positions = list(range(cursor, cursor + n))
         cursor += n
@@ -306,25 +328,31 @@ def update(
     policy.eval()  # dropout and augmentation off: π_old and π are evaluated identically
     n = len(batch.tokens)
     with torch.no_grad():
-        old = padded_logprobs(policy, batch, torch.arange(n), cfg.sampling.temperature, cfg.ratio_top_k)
-    clip = cfg.clip()
+        old = padded_logprobs(policy, batch, torch.arange(n), cfg.ratio_sampling())
+    objective = cfg.loss_objective()
     trained = trained_parameters(policy)
     rows: list[dict[str, float]] = []
     for _ in range(cfg.epochs):
         if rows and cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
             break
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
-            units = surrogate_units(batch.mask[idx], batch.tokens.shape[-1], cfg.objective)
+            units = surrogate_units(batch.mask[idx], batch.tokens.shape[-1], objective.granularity)
             mine = idx[distributed.shard_rows(len(idx))]
             optimizer.zero_grad()
             local, weight = {}, 0.0
             if len(mine):
-                new = padded_logprobs(policy, batch, mine, cfg.sampling.temperature, cfg.ratio_top_k)
+                new = padded_logprobs(policy, batch, mine, cfg.ratio_sampling())
                 loss, stats = clipped_surrogate_loss(
-                    new, old[mine], batch.mask[mine], batch.advantages[mine], cfg.objective, clip, n_units=units
+                    new,
+                    old[mine],
+                    batch.mask[mine],
+                    batch.advantages[mine],
+                    objective.granularity,
+                    objective.clip,
+                    n_units=units,
                 )
                 loss.backward()
-                weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], cfg.objective))
+                weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], objective.granularity))
                 local = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0)}
             distributed.all_reduce_gradients(trained)
             grad_norm = torch.nn.utils.clip_grad_norm_(trained, cfg.grad_clip_norm)
@@ -356,9 +384,64 @@ def format_row(row: dict[str, float]) -> str:
     return " | ".join(f"{row[c]:.4g}" if isinstance(row[c], float) else str(row[c]) for c in LOG_COLUMNS)
 
 
-def run_spo(
-    cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] = RolloutEngine.for_stage
-) -> list[dict[str, float]]:
+def _finish_copy(cfg: SPOConfig, state: ResumableState) -> None:
+    """A run complete in ``state``: copy its final policy into place if a kill came before that copy."""
+    if distributed.is_main() and not (cfg.output_dir / "pretrained_model" / "config.json").is_file():
+        tmp = cfg.output_dir / "pretrained_model.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(state.directory / "pretrained_model", tmp)
+        replace_dir(tmp, cfg.output_dir / "pretrained_model")
+    distributed.wait_for_everyone()
+
+
+def _load(cfg: SPOConfig, state: ResumableState, resume: bool) -> tuple[CSOPolicy, Any, Any, torch.optim.Optimizer]:
+    """The policy (the input checkpoint, or the saved one when resuming), its processors and the optimizer."""
+    source = state.directory / "pretrained_model" if resume else cfg.policy.pretrained_path
+    policy, pre, post = load_policy(source, cfg.policy if not resume else None)
+    policy.set_encoders_frozen(cfg.encoder_freeze)
+    optimizer = torch.optim.AdamW(trained_parameters(policy), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if resume:
+        optimizer.load_state_dict(torch.load(state.directory / "optimizer.pt"))
+    return policy, pre, post, optimizer
+
+
+def _wandb_run(cfg: SPOConfig) -> Any:
+    """The main process's wandb run with ``--wandb.enable=true``; None otherwise."""
+    if not (cfg.wandb.enable and distributed.is_main()):
+        return None
+    import wandb
+
+    return wandb.init(
+        project=cfg.wandb.project,
+        entity=cfg.wandb.entity,
+        mode=cfg.wandb.mode,
+        config=json.loads(json.dumps(asdict(cfg), default=str)),
+        resume="allow",
+        id=cfg.wandb.run_id,
+    )
+
+
+def _save_iteration(
+    cfg: SPOConfig,
+    state: ResumableState,
+    progress: dict[str, Any],
+    policy: CSOPolicy,
+    processors: tuple[Any, Any],
+    optimizer: torch.optim.Optimizer,
+) -> None:
+    """The main process saves the iteration (checkpoint, optimizer, progress), the log and the plot."""
+
+    def write(directory: Path) -> None:
+        save_checkpoint(directory / "pretrained_model", policy, *processors)
+        torch.save(optimizer.state_dict(), directory / "optimizer.pt")
+
+    state.save(progress, write)
+    history = progress["history"]
+    write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
+    plot_history(history, cfg.output_dir / "spo.png")
+
+
+def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] | None = None) -> list[dict[str, float]]:
     """Run (or resume) SPO; returns the per-iteration history. The final policy is ``output_dir/pretrained_model``.
 
     ``make_engine(policy, preprocessor, postprocessor, cfg)`` builds the rollout engine.
@@ -371,41 +454,18 @@ def run_spo(
     distributed.wait_for_everyone()
     state = ResumableState(cfg.output_dir / "state")
     saved = state.progress()
-    resume = saved is not None
     progress = saved or {"iteration": 0, "cursor": 0, "history": [], "skip_until": {}}
     if progress["iteration"] >= cfg.iterations:
         print(f"SPO already complete ({progress['iteration']} iterations) in {cfg.output_dir}")
-        final_missing = not (cfg.output_dir / "pretrained_model" / "config.json").is_file()
-        if main and final_missing:  # killed before the final copy
-            tmp = cfg.output_dir / "pretrained_model.tmp"
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(state.directory / "pretrained_model", tmp)
-            replace_dir(tmp, cfg.output_dir / "pretrained_model")
-        distributed.wait_for_everyone()
+        _finish_copy(cfg, state)
         return progress["history"]
-    source = state.directory / "pretrained_model" if resume else cfg.policy.pretrained_path
-    policy, pre, post = load_policy(source, cfg.policy if not resume else None)
-    policy.set_encoders_frozen(cfg.encoder_freeze)
-    optimizer = torch.optim.AdamW(trained_parameters(policy), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    if resume:
-        optimizer.load_state_dict(torch.load(state.directory / "optimizer.pt"))
+    policy, pre, post, optimizer = _load(cfg, state, resume=saved is not None)
     generator = torch.Generator().manual_seed(cfg.seed)
-    run = None
-    if cfg.wandb.enable and main:
-        import wandb
-
-        run = wandb.init(
-            project=cfg.wandb.project,
-            entity=cfg.wandb.entity,
-            mode=cfg.wandb.mode,
-            config=json.loads(json.dumps(asdict(cfg), default=str)),
-            resume="allow",
-            id=cfg.wandb.run_id,
-        )
+    run = _wandb_run(cfg)
     history, cursor, skip_until = progress["history"], progress["cursor"], progress.get("skip_until", {})
     if main:
         print(" | ".join(LOG_COLUMNS))
-    with distributed.ShardedRollouts(make_engine(policy, pre, post, cfg)) as engine:
+    with distributed.ShardedRollouts((make_engine or rollout_stage.stage_engine)(policy, pre, post, cfg)) as engine:
         for iteration in range(progress["iteration"], cfg.iterations):
             started = time.perf_counter()
             round_seed = seeds.round_seed(cfg.seed, iteration * 10_007)
@@ -413,7 +473,7 @@ def run_spo(
             generator.manual_seed(round_seed)
             if groups:
                 with cfg.training():
-                    batch = Batch.from_groups(groups, cfg.objective, policy.config.device)
+                    batch = Batch.from_groups(groups, cfg.loss_objective().advantage, policy.config.device)
                     stats |= update(cfg, policy, optimizer, batch, generator)
             else:  # every group was uniform: nothing to learn from this iteration
                 stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
@@ -423,15 +483,8 @@ def run_spo(
                 print(format_row(row), flush=True)
                 if run is not None:
                     run.log(row, step=iteration + 1)
-
-                def write(directory: Path) -> None:
-                    save_checkpoint(directory / "pretrained_model", policy, pre, post)
-                    torch.save(optimizer.state_dict(), directory / "optimizer.pt")
-
                 progress = {"iteration": iteration + 1, "cursor": cursor, "history": history, "skip_until": skip_until}
-                state.save(progress, write)
-                write_atomic(cfg.output_dir / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history).encode())
-                plot_history(history, cfg.output_dir / "spo.png")
+                _save_iteration(cfg, state, progress, policy, (pre, post), optimizer)
             distributed.wait_for_everyone()
     if main:
         save_checkpoint(cfg.output_dir / "pretrained_model", policy, pre, post)
@@ -450,7 +503,7 @@ class SPOStage(CheckpointStage):
     grows = ("spo.iterations",)
 
     def run(self) -> list[dict[str, float]]:
-        return run_spo(self.cfg, self.make_engine or RolloutEngine.for_stage)
+        return run_spo(self.cfg, self.make_engine)
 
     def history(self) -> list[dict[str, float]]:
         """The per-iteration log rows."""

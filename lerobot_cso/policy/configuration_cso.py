@@ -17,6 +17,7 @@ from torch.optim.lr_scheduler import LambdaLR
 from lerobot_cso.errors import check_number
 from lerobot_cso.policy.fast_prior import WEIGHT_FORMATS
 from lerobot_cso.policy.observation_encoder import IMAGE_BACKBONES
+from lerobot_cso.sampling import Sampling
 
 SKILL_TOKENS_KEY = "observation.skill_tokens"
 SKILL_START_KEY = "observation.skill_start"
@@ -148,8 +149,7 @@ class CSOConfig(PreTrainedConfig):
         if len(self.ae_conv_kernels) != len(self.ae_conv_strides):
             raise ValueError("ae_conv_kernels and ae_conv_strides must have the same length")
         check = partial(check_number, error=ValueError)  # every numeric setting finite and in range (NaN too)
-        check("top_k", self.top_k, ge=1, optional=True)
-        check("temperature", self.temperature, gt=0)
+        self.sampling.check(error=ValueError)
         check("ae_dropout", self.ae_dropout, ge=0, lt=1)
         check("prior_dropout", self.prior_dropout, ge=0, lt=1)
         check("decoder_loss_scale", self.decoder_loss_scale, ge=0)
@@ -169,6 +169,11 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:
             raise ValueError(f"async_decode_lead must be in [0, n_action_steps={self.n_action_steps})")
+
+    @property
+    def sampling(self) -> Sampling:
+        """How ``select_action`` draws skills."""
+        return Sampling(self.temperature, self.top_k, self.greedy)
 
     @property
     def downsample_factor(self) -> int:

@@ -18,6 +18,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
 from lerobot_cso.policy.skill_prior import SkillPrior, draw_tokens, filtered_log_probs
+from lerobot_cso.sampling import FULL, Sampling
 
 WeightFormat = Literal["float32", "int8"]
 WEIGHT_FORMATS: tuple[str, ...] = ("float32", "int8")
@@ -82,12 +83,7 @@ class FastSkillSampler:
 
     @torch.no_grad()
     def sample(
-        self,
-        context: Tensor,
-        temperature: float = 1.0,
-        top_k: int | None = None,
-        greedy: bool = False,
-        generator: torch.Generator | None = None,
+        self, context: Tensor, sampling: Sampling = FULL, generator: torch.Generator | None = None
     ) -> tuple[Tensor, Tensor]:
         """Same contract as ``SkillPrior.sample``: token ids (B, n) and their filtered log-probs (B, n)."""
         prior = self.prior
@@ -98,9 +94,9 @@ class FastSkillSampler:
         x = torch.cat([context, prior._embed(prior._start(context), 0)], dim=1)
         pos, tokens, log_probs = 0, [], []
         for j in range(prior.n_tokens):
-            logp = filtered_log_probs(self._step(x, keys, values, pos), temperature, top_k)
+            logp = filtered_log_probs(self._step(x, keys, values, pos), sampling.temperature, sampling.top_k)
             pos += x.shape[1]
-            token = draw_tokens(logp, greedy, generator)
+            token = draw_tokens(logp, sampling.greedy, generator)
             tokens.append(token)
             log_probs.append(logp.gather(-1, token))
             if j + 1 < prior.n_tokens:

@@ -23,6 +23,7 @@ from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.policy.observation_encoder import ContextEncoder
 from lerobot_cso.policy.skill_autoencoder import SkillAutoencoder
 from lerobot_cso.policy.skill_prior import SkillPrior, filtered_log_probs
+from lerobot_cso.sampling import FULL, Sampling
 
 _NO_DECAY = (nn.LayerNorm, nn.GroupNorm, nn.BatchNorm2d, nn.Embedding)
 
@@ -164,20 +165,17 @@ class CSOPolicy(PreTrainedPolicy):
     def sample_skills(
         self,
         context: Tensor,
-        temperature: float = 1.0,
-        top_k: int | None = None,
-        greedy: bool = False,
+        sampling: Sampling = FULL,
         generator: torch.Generator | None = None,
         use_cache: bool = True,
     ) -> tuple[Tensor, Tensor]:
         """Sample one skill per row: token ids (B, n) and per-token log-probs of the filtered distribution."""
-        return self.prior.sample(context, temperature, top_k, greedy, generator, use_cache)
+        return self.prior.sample(context, sampling, generator, use_cache)
 
-    def token_logprobs(
-        self, context: Tensor, tokens: Tensor, temperature: float = 1.0, top_k: int | None = None
-    ) -> Tensor:
-        """Per-token log-probs (B, n) of given tokens by teacher forcing, with gradients."""
-        logp = filtered_log_probs(self.prior.logits(context, tokens), temperature, top_k)
+    def token_logprobs(self, context: Tensor, tokens: Tensor, sampling: Sampling = FULL) -> Tensor:
+        """Per-token log-probs (B, n) of given tokens by teacher forcing under ``sampling``'s distribution, with
+        gradients."""
+        logp = filtered_log_probs(self.prior.logits(context, tokens), sampling.temperature, sampling.top_k)
         return logp.gather(-1, tokens.unsqueeze(-1)).squeeze(-1)
 
     def decode_skills(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
@@ -205,7 +203,7 @@ class CSOPolicy(PreTrainedPolicy):
         cfg = self.config
         if self._sampler is None:
             self._sampler = FastSkillSampler(self.prior, cfg.inference_weights)
-        tokens, _ = self._sampler.sample(self.encode_context(batch), cfg.temperature, cfg.top_k, cfg.greedy)
+        tokens, _ = self._sampler.sample(self.encode_context(batch), cfg.sampling)
         return tokens
 
     def _executed_chunk(self, batch: dict[str, Any]) -> Tensor:

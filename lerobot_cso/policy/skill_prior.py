@@ -7,6 +7,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
 from lerobot_cso.policy.skill_autoencoder import sinusoidal_positions
+from lerobot_cso.sampling import FULL, Sampling
 
 KVCache = list[tuple[Tensor, Tensor]]
 
@@ -116,9 +117,7 @@ class SkillPrior(nn.Module):
     def sample(
         self,
         context: Tensor,
-        temperature: float = 1.0,
-        top_k: int | None = None,
-        greedy: bool = False,
+        sampling: Sampling = FULL,
         generator: torch.Generator | None = None,
         use_cache: bool = True,
     ) -> tuple[Tensor, Tensor]:
@@ -128,8 +127,8 @@ class SkillPrior(nn.Module):
         tokens, log_probs = [], []
         for j in range(self.n_tokens):
             logits, present = self._run(x, cache)
-            logp = filtered_log_probs(logits[:, -1], temperature, top_k)
-            token = draw_tokens(logp, greedy, generator)
+            logp = filtered_log_probs(logits[:, -1], sampling.temperature, sampling.top_k)
+            token = draw_tokens(logp, sampling.greedy, generator)
             tokens.append(token)
             log_probs.append(logp.gather(-1, token))
             if j + 1 == self.n_tokens:

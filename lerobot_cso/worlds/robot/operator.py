@@ -1,6 +1,6 @@
 """The person at the robot: arranges each initial state and labels each episode.
 
-A robot rollout (:mod:`lerobot_cso.rollout.robot`) asks its :class:`Operator`: during the arrange phase, whether
+A robot rollout (:mod:`lerobot_cso.worlds.robot.world`) asks its :class:`Operator`: during the arrange phase, whether
 the scene is ready (:meth:`Operator.ready`); at every control tick of the policy, whether the episode has a
 verdict yet (:meth:`Operator.verdict`): ``success``, ``failure`` or ``discard`` (not counted, the attempt is
 repeated), no verdict by the time limit being a failure; and with ``--operator.on_fault=wait``, after a robot

@@ -5,7 +5,7 @@ State observations (``observation.state``: the 39-d state, or with ``state=propr
 ``task`` takes one task, a comma list, or a set name (``MT10``, ``ML45-train``, ...); each task gets its own
 vector env under a group named after the task, so LeRobot's ``eval_info.json`` reports a success rate per task
 name. Seeds that LeRobot passes to ``reset`` are shifted by ``seed_offset`` (default: the start of the evaluation
-range of :mod:`lerobot_cso.envs.seeds`).
+range of :mod:`lerobot_cso.seeds`).
 
 Importing this module does not import metaworld; the envs are built in ``create_envs``.
 """
@@ -20,8 +20,8 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from lerobot_cso.envs import seeds
-from lerobot_cso.envs.constants import ACTION_DIM, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso import seeds
+from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 
 
 def parse_cameras(cameras: str) -> tuple[str, ...]:
@@ -71,8 +71,8 @@ class CSOMetaWorldEnvConfig(EnvConfig):
         """One vector env of ``n_envs`` copies per task: ``{task_name: {0: vec_env}}``."""
         from lerobot.envs.utils import freeze_after_episode_end
 
-        from lerobot_cso.envs.metaworld_env import CSOMetaWorldEnv
-        from lerobot_cso.envs.tasks import resolve_tasks
+        from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv
+        from lerobot_cso.worlds.metaworld.tasks import resolve_tasks
 
         envs: dict[str, dict[int, gym.vector.VectorEnv]] = {}
         for task in resolve_tasks(self.task):

@@ -8,19 +8,15 @@ first reset on that task, ≈0.25 s) and kept in a small LRU cache (≈20 MB eac
 tasks. The goal position is part of the observation (MT-style), as the scripted experts and a state-only
 policy need it.
 
-An episode terminates at the first success (``info["is_success"]``) and is truncated after
-``max_episode_steps``. ``reset(options={"park": True})`` parks the env: until its next real reset it does
-no simulation and every step returns the last observation; the rollout engine parks an env that has no
-episode left to run.
+Episodes, parking and the render cadence (``reset(options={"park": True})``, ``{"render_every": k}``) are the
+pool's env protocol, :class:`~lerobot_cso.rollout.env.PoolEnv`.
 
 The observation is a dict in LeRobot's env convention: ``agent_pos`` (float32), and with cameras
 ``pixels`` = ``{camera: uint8 (H, W, 3)}``, which ``lerobot.envs.utils.preprocess_observation`` maps to
 ``observation.state`` and ``observation.images.<camera>``. ``state`` picks what ``agent_pos`` holds
-(:data:`~lerobot_cso.envs.constants.STATE_LAYOUTS`): the full 39-d state (object and goal positions: what the
-scripted experts read), QueST's 8-d proprio (hand and gripper, now and one frame before: a policy that reads it
-must find the objects in the image), or LeRobot's 4-d hand state. ``reset(options={"render_every": k})``
-renders the cameras only on every ``k``-th step of the episode (the decision steps of a policy acting in chunks
-of ``k``); the other steps repeat the last frame.
+(:data:`~lerobot_cso.worlds.metaworld.constants.STATE_LAYOUTS`): the full 39-d state (object and goal positions:
+what the scripted experts read), QueST's 8-d proprio (hand and gripper, now and one frame before: a policy that reads it
+must find the objects in the image), or LeRobot's 4-d hand state.
 """
 
 from __future__ import annotations
@@ -31,15 +27,15 @@ from collections.abc import Sequence
 from functools import cache
 from typing import Any
 
-import gymnasium as gym
 import metaworld
 import mujoco
 import numpy as np
 from gymnasium import spaces
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-from lerobot_cso.envs.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
-from lerobot_cso.envs.tasks import check_task, task_description
+from lerobot_cso.rollout.env import PoolEnv
+from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.tasks import check_task, task_description
 
 _UPSIDE_DOWN = ("corner", "corner2")
 DEFAULT_RENDER_CAMERA = "corner2"
@@ -51,13 +47,6 @@ warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high")
 def _goal_observable_task(task: str) -> metaworld.Task:
     """A fixed metaworld ``Task`` with the goal in the observation (built once per process)."""
     return metaworld.MT1(task, seed=0).train_tasks[0]
-
-
-def _zeros(space: spaces.Space) -> Any:
-    """An all-zero observation of a (nested dict of) Box space."""
-    if isinstance(space, spaces.Dict):
-        return {key: _zeros(sub) for key, sub in space.items()}
-    return np.zeros(space.shape, space.dtype)
 
 
 _RENDERERS: dict[tuple[str, int], mujoco.Renderer] = {}
@@ -115,7 +104,7 @@ def select_state(full: np.ndarray, state: str) -> np.ndarray:
     return full.astype(np.float32)
 
 
-class CSOMetaWorldEnv(gym.Env):
+class CSOMetaWorldEnv(PoolEnv):
     """One MetaWorld task at a time (switchable on reset), a state layout, optional cameras."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
@@ -148,10 +137,6 @@ class CSOMetaWorldEnv(gym.Env):
         self._max_cached_tasks = max(1, max_cached_tasks)
         self._sims: OrderedDict[str, Any] = OrderedDict()
         self._set_task(task)
-        self._t = 0
-        self._parked = False
-        self._render_every = 1
-        self._last_obs: dict[str, Any] | None = None
 
         state_space = spaces.Box(-np.inf, np.inf, (STATE_LAYOUTS[state],), dtype=np.float32)
         obs_spaces: dict[str, spaces.Space] = {"agent_pos": state_space}
@@ -194,7 +179,7 @@ class CSOMetaWorldEnv(gym.Env):
         image = renderer.render()
         return np.ascontiguousarray(image[::-1, ::-1]) if camera in _UPSIDE_DOWN else image
 
-    def _observation(self, full: np.ndarray) -> dict[str, Any]:
+    def _observe(self, full: np.ndarray) -> dict[str, Any]:
         obs: dict[str, Any] = {"agent_pos": select_state(full, self.state)}
         if self.cameras:
             if self._t % self._render_every == 0 or self._last_obs is None:
@@ -203,38 +188,15 @@ class CSOMetaWorldEnv(gym.Env):
                 obs["pixels"] = self._last_obs["pixels"]
         return obs
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Start an episode from initial state ``seed`` (options: ``task``, ``park``, ``render_every``)."""
-        super().reset(seed=seed)
-        options = options or {}
-        if options.get("park"):
-            self._parked = True
-            if self._last_obs is None:  # parked before its first episode: a blank observation
-                self._last_obs = _zeros(self.observation_space)
-            return self._last_obs, {"is_success": False}
-        if "task" in options:
-            self._set_task(options["task"])
+    def _restart(self, seed: int | None) -> np.ndarray:
         if seed is not None:
             self.sim.seed(self.seed_offset + seed)
         state, _ = self.sim.reset()
-        self._t = 0
-        self._parked = False
-        self._render_every = max(1, int(options.get("render_every", 1)))
-        self._last_obs = self._observation(state)
-        return self._last_obs, {"is_success": False}
+        return state
 
-    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
-        """Apply one action; terminated on success, truncated at ``max_episode_steps``."""
-        if self._parked:
-            return self._last_obs, 0.0, False, False, {"is_success": False}
+    def _advance(self, action: np.ndarray) -> tuple[np.ndarray, float, bool]:
         state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
-        self._t += 1
-        success = bool(info["success"])
-        self._last_obs = self._observation(state)
-        truncated = not success and self._t >= self._max_episode_steps
-        return self._last_obs, float(reward), success, truncated, {"is_success": success}
+        return state, reward, bool(info["success"])
 
     def render(self) -> np.ndarray:
         """An RGB frame of the render camera (for LeRobot's eval videos)."""

@@ -5,17 +5,15 @@ initial state is an integer:
 
 - ``0 <= state < 50``: the benchmark's fixed init state of that index (what evaluation uses, as LIBERO and
   QueST do; LeRobot's ``LiberoEnv`` restores it);
-- ``state >= 1_000_000`` (the online-training ranges of :mod:`lerobot_cso.envs.seeds`): a fresh placement drawn
+- ``state >= 1_000_000`` (the online-training ranges of :mod:`lerobot_cso.seeds`): a fresh placement drawn
   from the task's BDDL regions with ``np.random.seed(state)`` — the same state for the same integer, and never
   one of the evaluation states.
 
 Observations follow the engine's gym format: ``agent_pos`` is LeRobot's 8-d LIBERO state (eef position,
 eef axis-angle, two gripper joints, as ``LiberoProcessorStep`` builds it) and ``pixels`` holds the requested
 cameras (``image``: agentview, ``image2``: wrist, LeRobot's names) turned 180° as LeRobot's LIBERO datasets
-store them. ``reset(options={"render_every": k})`` renders the cameras only every ``k``-th step of the episode
-(the decision steps of a policy acting in chunks of ``k``); the other steps repeat the last frame.
-``reset(options={"park": True})`` parks the env (no simulation until its next real reset), as
-:class:`~lerobot_cso.envs.metaworld_env.CSOMetaWorldEnv` does.
+store them. Episodes, parking and the render cadence are the pool's env protocol,
+:class:`~lerobot_cso.rollout.env.PoolEnv`.
 """
 
 from __future__ import annotations
@@ -24,12 +22,12 @@ import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
 
-from lerobot_cso.envs.libero_setup import configure
+from lerobot_cso.rollout.env import PoolEnv
+from lerobot_cso.worlds.libero.setup import configure
 
 configure()  # before any libero import, in every process that unpickles a LIBERO env
 
@@ -76,13 +74,6 @@ def max_steps(task: str) -> int:
     return TASK_SUITE_MAX_STEPS[parse_task(task)[0]]
 
 
-def _zeros(space: spaces.Space) -> Any:
-    """An all-zero observation of a (nested dict) space."""
-    if isinstance(space, spaces.Dict):
-        return {key: _zeros(sub) for key, sub in space.items()}
-    return np.zeros(space.shape, space.dtype)
-
-
 class _FrameSkippingLiberoEnv(LiberoEnv):
     """LeRobot's ``LiberoEnv`` whose cameras can skip rendering: while ``rendering`` is False, each camera's
     robosuite sensor returns its last frame instead of rendering. Only the sensor call is replaced, so the
@@ -114,7 +105,7 @@ class _FrameSkippingLiberoEnv(LiberoEnv):
         return lazy
 
 
-class CSOLiberoEnv(gym.Env):
+class CSOLiberoEnv(PoolEnv):
     """One LIBERO task at a time (switchable on reset), 8-d state, optional cameras, fixed or sampled states."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
@@ -138,10 +129,6 @@ class CSOLiberoEnv(gym.Env):
         self.task = task
         self._env: _FrameSkippingLiberoEnv | None = None
         self._env_task: str | None = None
-        self._render_every = 1
-        self._t = 0
-        self._parked = False
-        self._last_obs: dict[str, Any] | None = None
         self._to_state = LiberoProcessorStep()
         obs_spaces: dict[str, spaces.Space] = {"agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
         if self.cameras:
@@ -177,7 +164,9 @@ class CSOLiberoEnv(gym.Env):
             self._env_task = self.task
         return self._env
 
-    def _observation(self, raw: dict[str, Any]) -> dict[str, Any]:
+    def _observe(self, raw: dict[str, Any]) -> dict[str, Any]:
+        # Render during the next step only if its observation is one the caller asked frames for.
+        self._libero().rendering = bool(self.cameras) and (self._t + 1) % self._render_every == 0
         robot = raw["robot_state"]
         eef = {key: torch.as_tensor(robot["eef"][key])[None] for key in ("pos", "quat")}
         gripper = {"qpos": torch.as_tensor(robot["gripper"]["qpos"])[None]}
@@ -188,24 +177,11 @@ class CSOLiberoEnv(gym.Env):
             obs["pixels"] = {cam: np.ascontiguousarray(raw["pixels"][cam][::-1, ::-1]) for cam in self.cameras}
         return obs
 
-    def _render_step(self, env: _FrameSkippingLiberoEnv) -> None:
-        """Render during the next step only if its observation is one the caller asked frames for."""
-        env.rendering = bool(self.cameras) and (self._t + 1) % self._render_every == 0
+    def _set_task(self, task: str) -> None:
+        parse_task(task)
+        self.task = task
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Start an episode from initial state ``seed`` (options: ``task``, ``park``, ``render_every``)."""
-        super().reset(seed=seed)
-        options = options or {}
-        if options.get("park"):
-            self._parked = True
-            if self._last_obs is None:  # parked before its first episode: a blank observation
-                self._last_obs = _zeros(self.observation_space)
-            return self._last_obs, {"is_success": False}
-        if "task" in options:
-            parse_task(options["task"])
-            self.task = options["task"]
+    def _restart(self, seed: int | None) -> dict[str, Any]:
         state = 0 if seed is None else int(seed)
         if FIXED_STATES <= state < 1_000_000 or state < 0:
             raise ValueError(f"LIBERO initial state {state}: use 0..{FIXED_STATES - 1} (fixed) or >= 1000000")
@@ -213,25 +189,11 @@ class CSOLiberoEnv(gym.Env):
         env.init_states = state < FIXED_STATES  # fixed benchmark state, or a placement drawn from the seed
         env.init_state_id = state
         raw, _ = env.reset(seed=state)
-        self._render_every = max(1, int(options.get("render_every", 1)))
-        self._t = 0
-        self._parked = False
-        self._render_step(env)
-        self._last_obs = self._observation(raw)
-        return self._last_obs, {"is_success": False}
+        return raw
 
-    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
-        """Apply one action; terminated on success, truncated at the horizon."""
-        if self._parked:
-            return self._last_obs, 0.0, False, False, {"is_success": False}
-        env = self._libero()
-        raw, reward, terminated, _, info = env.step(np.clip(np.asarray(action, np.float64), -1.0, 1.0))
-        self._t += 1
-        self._render_step(env)
-        success = bool(info["is_success"])
-        self._last_obs = self._observation(raw)
-        truncated = not success and self._t >= self._max_episode_steps
-        return self._last_obs, float(reward), success, truncated, {"is_success": success}
+    def _advance(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool]:
+        raw, reward, _, _, info = self._libero().step(np.clip(np.asarray(action, np.float64), -1.0, 1.0))
+        return raw, reward, bool(info["is_success"])
 
     def render(self) -> np.ndarray:
         """An RGB frame of the agentview camera (for videos)."""

@@ -8,7 +8,7 @@ evaluate):
   ``i`` (50 per task), and every evaluation seed (3 by default) reuses the same 50 states, the seed changing
   the policy's sampling and the simulator's seed;
 - **training rollouts** (R-SFT, SPO) start from placements drawn from each task's BDDL regions with the seeds of
-  :mod:`lerobot_cso.envs.seeds`' training ranges (R-SFT and SPO disjoint), so they never reuse an evaluation
+  :mod:`lerobot_cso.seeds`' training ranges (R-SFT and SPO disjoint), so they never reuse an evaluation
   state;
 - each episode is capped at its suite's standard horizon (LeRobot's ``TASK_SUITE_MAX_STEPS``: 280 spatial and
   object, 300 goal, 520 libero_10, 400 libero_90) unless ``--max_steps`` caps it lower.
@@ -20,31 +20,28 @@ only the decision steps' frames.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from types import ModuleType
+from typing import Any
 
-from lerobot_cso.envs import seeds
+from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
-from lerobot_cso.rollout.world import Purpose, RolloutSettings, image_size_of, policy_features
+from lerobot_cso.rollout.pool import open_pool
+from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, image_size_of
 
 SUITE_PREFIX = "libero_"
 EVAL_SEEDS = 3  # the paper's three evaluation seeds
 DEFAULT_HORIZON = 500  # LeRobot's LIBERO default for a suite it does not know
 
 
-def names_libero(tasks: str) -> bool:
-    """Whether a ``--tasks`` spec names LIBERO tasks (checked without importing LIBERO)."""
-    items = [t.strip() for t in tasks.split(",") if t.strip()]
-    return bool(items) and all(t.startswith(SUITE_PREFIX) for t in items)
-
-
 def _env() -> ModuleType:
-    """:mod:`lerobot_cso.envs.libero_env` (configures LIBERO offline on import); ``ValueError`` if not installed."""
-    from lerobot_cso.envs.libero_setup import LiberoSetupError
+    """:mod:`lerobot_cso.worlds.libero.env` (configures LIBERO offline on import); ``ValueError`` if not installed."""
+    from lerobot_cso.worlds.libero.setup import LiberoSetupError
 
     try:
-        from lerobot_cso.envs import libero_env
+        from lerobot_cso.worlds.libero import env as libero_env
     except LiberoSetupError as e:
         raise ValueError(str(e)) from None
     return libero_env
@@ -105,21 +102,33 @@ class Libero:
             raise ValueError(f"LIBERO has {self.eval_states_per_seed} fixed init states per task, seeds 0..2")
         return list(range(count))
 
-    def backend(self, settings: RolloutSettings, cameras: Sequence[str]) -> RolloutBackend:
-        from lerobot_cso.rollout.pool import open_pool
-
+    def backend(self, rollouts: Rollouts) -> RolloutBackend:
         env = _env()
-        image_size = image_size_of(policy_features(settings), env.IMAGE_SIZE)
-        max_steps = getattr(settings, "max_steps", None)  # None: each task's suite horizon
-        first = self.resolve_tasks(settings.tasks)[0]  # each job resets its slot onto its own task
-        factory = partial(env.CSOLiberoEnv, first, tuple(cameras), image_size, max_steps)
+        image_size = image_size_of(rollouts.features, env.IMAGE_SIZE)
+        first = self.resolve_tasks(self.spec)[0]  # each job resets its slot onto its own task
+        # max_steps None: each task's suite horizon
+        factory = partial(env.CSOLiberoEnv, first, rollouts.cameras, image_size, rollouts.max_steps)
         return open_pool(
-            settings.num_envs,
-            cameras,
-            image_size=image_size,
-            max_steps=settings.horizon(),
-            vectorization=settings.vectorization,
+            rollouts.num_envs,
+            rollouts.cameras,
             env_factory=factory,
             check_task=env.parse_task,
-            frames="all" if settings.records_frames else "decisions",
+            vectorization=rollouts.vectorization,
+            frames=rollouts.frames,
         )
+
+
+@WorldConfig.register_subclass("libero")
+@dataclass
+class LiberoConfig(WorldConfig):
+    """LIBERO (``--tasks``: suites, ``<suite>-<index>`` tasks, or a comma list of both); the world of a
+    ``--tasks`` that names only LIBERO tasks."""
+
+    @classmethod
+    def claims(cls, tasks: str) -> bool:
+        """Whether a ``--tasks`` spec names LIBERO tasks (checked without importing LIBERO)."""
+        items = [t.strip() for t in tasks.split(",") if t.strip()]
+        return bool(items) and all(t.startswith(SUITE_PREFIX) for t in items)
+
+    def build(self, tasks: str, policy: Any, output_dir: Path | None) -> Libero:
+        return Libero(tasks)

@@ -1,0 +1,1 @@
+"""The worlds rollouts run in, one folder each (:mod:`lerobot_cso.worlds.base`: what a world is)."""

@@ -1,0 +1,108 @@
+"""Worlds: where rollouts run, what their tasks are called, and which initial states each purpose uses.
+
+A world is one folder of :mod:`lerobot_cso.worlds` holding its env, its task names and initial states, its scripted
+expert where it has one, and its settings: a :class:`WorldConfig` registered under a name, chosen with
+``--world.type=<name>`` (its own settings are ``--world.*``). The stage settings build the world once
+(:meth:`WorldConfig.build`); R-SFT, SPO and evaluation then only ask it for task names, language descriptions,
+initial states and a rollout backend. Initial states are plain integers whose meaning is the world's own
+(MetaWorld: the reset seed, from the disjoint ranges of :mod:`lerobot_cso.seeds`).
+
+A third party adds a world as LeRobot plugins add robots: a distribution named ``lerobot_env_<name>`` (LeRobot
+imports every one at start-up) whose module registers ``@WorldConfig.register_subclass("<name>")``.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Literal, Protocol
+
+import draccus
+
+from lerobot_cso.rollout.backend import RolloutBackend
+from lerobot_cso.rollout.pool import Frames
+
+Purpose = Literal["rsft", "spo"]
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """What a stage asks of a world's backend: the envs, how they are stepped, what its policy reads."""
+
+    num_envs: int
+    vectorization: str  # processes | sync | async
+    horizon: int  # the episode cap of the rollouts
+    max_steps: int | None  # the stage's own cap (null: the world's, per task where it has one)
+    frames: Frames  # all: every frame is kept; decisions: only the frames a decision reads need rendering
+    cameras: tuple[str, ...]  # the cameras the policy reads
+    features: Mapping[str, Any]  # the policy's input features (none for a policy still to be trained)
+
+
+class World(Protocol):
+    """A world's names, initial states and backend."""
+
+    name: str
+    robot_type: str  # LeRobotDataset's robot_type of buffers recorded in this world
+    fps: int  # control frequency (frames per second of recorded buffers)
+    horizon: int  # the longest episode the world allows, and the default episode cap
+    eval_seeds: int  # evaluation seeds 0 .. eval_seeds - 1 exist
+    eval_states_per_seed: int  # at most this many evaluation episodes per task and seed
+
+    def resolve_tasks(self, spec: str) -> list[str]:
+        """The tasks named by ``spec``; ``ValueError`` naming the valid choices otherwise."""
+
+    def task_description(self, task: str) -> str:
+        """The language instruction of ``task``."""
+
+    def training_states(self, task: str, purpose: Purpose, start: int, count: int) -> list[int]:
+        """The ``start .. start + count - 1``-th initial states of ``task`` for online training (``purpose``)."""
+
+    def eval_states(self, task: str, eval_seed: int, count: int) -> list[int]:
+        """The first ``count`` evaluation initial states of ``task`` under evaluation seed ``eval_seed``."""
+
+    def backend(self, rollouts: Rollouts) -> RolloutBackend:
+        """A backend rolling out on this world."""
+
+
+class SimWorld(World, Protocol):
+    """A simulated world: the shapes of its observations and actions, which a dataset for it must have."""
+
+    state_dims: tuple[int, ...]  # the sizes observation.state may have
+    action_dim: int  # action
+    cameras: tuple[str, ...]  # the cameras its envs render (observation.images.<camera>)
+
+
+@dataclass
+class WorldConfig(draccus.ChoiceRegistry, abc.ABC):
+    """``--world.type=<name>`` and the world's own settings (``--world.*``)."""
+
+    simulated: ClassVar[bool] = True  # False: a real one (its cameras give every frame; no ablations on it)
+    scripted_demos: ClassVar[bool] = False  # it has a scripted expert: lerobot-cso demos generates its demos
+
+    @property
+    def type(self) -> str:
+        return self.get_choice_name(self.__class__)
+
+    @classmethod
+    def claims(cls, tasks: str) -> bool:
+        """Whether a ``--tasks`` spec names this world's tasks, so that it is the world without ``--world.type``."""
+        return False
+
+    def spec(self) -> dict[str, Any]:
+        """The world's settings that an episode depends on, for a stage's spec (none by default)."""
+        return {}
+
+    def validate(self) -> None:
+        """Check the settings; raises ``UsageError``."""
+
+    @abc.abstractmethod
+    def build(self, tasks: str, policy: Any, output_dir: Path | None) -> World:
+        """The world a stage with these ``--tasks``, policy config and output dir rolls out in."""
+
+
+def image_size_of(features: Mapping[str, Any], default: int) -> int:
+    """The side of the policy's (square) camera images, ``default`` when it reads none."""
+    sizes = [ft.shape[-1] for key, ft in features.items() if key.startswith("observation.images.")]
+    return sizes[0] if sizes else default

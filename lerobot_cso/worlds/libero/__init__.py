@@ -1,0 +1,1 @@
+"""LIBERO on LeRobot's ``LiberoEnv``: its offline set-up, the env, the world."""

@@ -1,0 +1,1 @@
+"""MetaWorld v3: tasks, initial states, the env, its scripted experts and LeRobot env config, the world."""

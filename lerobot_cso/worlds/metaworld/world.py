@@ -1,0 +1,100 @@
+"""The MetaWorld world (``--world.type=metaworld``, the default): seeded initial states, a pool of envs.
+
+Its envs give a policy what it reads (:func:`policy_pool`): the state layout its ``observation.state`` size names,
+its cameras at its image size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any, ClassVar
+
+from lerobot_cso import seeds
+from lerobot_cso.rollout.backend import RolloutBackend
+from lerobot_cso.rollout.pool import Frames, open_pool
+from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, image_size_of
+from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.tasks import check_task, resolve_tasks, task_description
+
+
+def pool(
+    num_envs: int,
+    cameras: Sequence[str] = (),
+    image_size: int = IMAGE_SIZE,
+    max_steps: int = HORIZON,
+    state: str = "full",
+    **kwargs: Any,
+) -> RolloutBackend:
+    """A pool (:func:`~lerobot_cso.rollout.pool.open_pool`; ``kwargs``: ``vectorization``, ``workers``,
+    ``frames``) of MetaWorld envs with this state layout and these cameras at ``image_size``²."""
+    from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv, check_cameras
+
+    check_cameras(cameras)
+    # The task given here is only the initial one; every job resets its slot onto its own task.
+    factory = partial(CSOMetaWorldEnv, "reach-v3", tuple(cameras), image_size, max_steps, state=state)
+    return open_pool(num_envs, cameras, env_factory=factory, check_task=check_task, **kwargs)
+
+
+def policy_pool(
+    features: Mapping[str, Any],
+    num_envs: int,
+    max_steps: int = HORIZON,
+    vectorization: str = "processes",
+    frames: Frames = "all",
+    **kwargs: Any,
+) -> RolloutBackend:
+    """A pool whose envs give a policy with these input features what it reads: the state layout of its
+    ``observation.state`` size (the full state without one), its cameras at its image size."""
+    from lerobot_cso.worlds.metaworld.env import state_layout
+
+    prefix = "observation.images."
+    cameras = tuple(key.removeprefix(prefix) for key in features if key.startswith(prefix))
+    state = state_layout(features["observation.state"].shape[-1]) if "observation.state" in features else "full"
+    size = image_size_of(features, IMAGE_SIZE)
+    return pool(num_envs, cameras, size, max_steps, state, vectorization=vectorization, frames=frames, **kwargs)
+
+
+class MetaWorld:
+    """MetaWorld v3: seeded initial states, a pool of vector envs."""
+
+    name = "metaworld"
+    robot_type = "sawyer"
+    state_dims = tuple(STATE_LAYOUTS.values())
+    action_dim = ACTION_DIM
+    cameras = CAMERAS
+    fps = FPS
+    horizon = HORIZON
+    eval_seeds = len(seeds.EVAL) // seeds.EVAL_BLOCK
+    eval_states_per_seed = seeds.EVAL_BLOCK
+
+    def resolve_tasks(self, spec: str) -> list[str]:
+        return resolve_tasks(spec)
+
+    def task_description(self, task: str) -> str:
+        return task_description(task)
+
+    def training_states(self, task: str, purpose: Purpose, start: int, count: int) -> list[int]:
+        return seeds.training_seeds(purpose, start, count)
+
+    def eval_states(self, task: str, eval_seed: int, count: int) -> list[int]:
+        return seeds.eval_seeds(count, eval_seed)
+
+    def backend(self, rollouts: Rollouts) -> RolloutBackend:
+        """Envs whose state layout and image size are the ones the stage's policy reads."""
+        return policy_pool(
+            rollouts.features, rollouts.num_envs, rollouts.horizon, rollouts.vectorization, rollouts.frames
+        )
+
+
+@WorldConfig.register_subclass("metaworld")
+@dataclass
+class MetaWorldConfig(WorldConfig):
+    """MetaWorld v3 (``--tasks``: a task, a comma list, MT10, MT50, ML45-train, ML45-test)."""
+
+    scripted_demos: ClassVar[bool] = True  # metaworld.policies' experts (expert.py)
+
+    def build(self, tasks: str, policy: Any, output_dir: Path | None) -> MetaWorld:
+        return MetaWorld()
