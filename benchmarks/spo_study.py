@@ -8,8 +8,8 @@ Every variant runs ``--config``'s SPO section from the R-SFT checkpoint of a fin
   ``i<M>`` after the first continues a copy of the one before it.
 * ``lr<x>``: the learning rate x; ``g<B>``: B groups per iteration; ``k<K>``: K samples per group; ``t<T>``: the
   rollouts' sampling temperature T (also the one the ratios are computed at); ``p<P>``: a state pool of P
-  training states per task. Each runs as many iterations as the first ``i<M>`` (the baseline), from the R-SFT
-  checkpoint.
+  training states per task; ``e<E>``: E epochs over each iteration's rollouts. Each runs as many iterations as
+  the first ``i<M>`` (the baseline), from the R-SFT checkpoint.
 
 Every resulting policy is rolled out from the states that ``rsft_study.py`` uses: the last ``--states`` of the
 SPO training range per task, ``--k`` times each at evaluation's sampling. Prints the success rate per task and
@@ -46,6 +46,7 @@ SETTINGS = {
     "k": ("group_size", int),
     "t": ("temperature", float),
     "p": ("state_pool", int),
+    "e": ("epochs", int),
 }
 
 
@@ -56,7 +57,8 @@ def parse_variant(name: str) -> tuple[str, Any]:
             field, kind = SETTINGS[prefix]
             return field, kind(name.removeprefix(prefix))
     raise ValueError(
-        f"unknown variant '{name}': i<iterations>, lr<lr>, g<groups>, k<group size>, t<temperature> or p<state pool>"
+        f"unknown variant '{name}': i<iterations>, lr<lr>, g<groups>, k<group size>, t<temperature>, "
+        "p<state pool> or e<epochs>"
     )
 
 
@@ -82,7 +84,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0, help="the training seed the pipeline was made with")
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/spo_study"))
     parser.add_argument(
-        "--variants", default="i10,i15,i20", help="i<M> (increasing), lr<x>, g<B>, k<K>, t<T>, p<P>; i first"
+        "--variants", default="i10,i15,i20", help="i<M> (increasing), lr<x>, g<B>, k<K>, t<T>, p<P>, e<E>; i first"
     )
     parser.add_argument("--states", type=int, default=100)
     parser.add_argument("--k", type=int, default=2)
