@@ -132,6 +132,8 @@ def test_kept_pools_serve_later_stages_from_the_same_open_pool(loaded):
         second = metaworld_pool(3, max_steps=MAX_STEPS, workers=2)
         other = metaworld_pool(3, max_steps=MAX_STEPS - 1, workers=2)
         assert second.pool is first.pool and other.pool is not first.pool
+        with metaworld_pool(3, max_steps=MAX_STEPS, workers=2) as entered:  # a stage that opens it in a `with`
+            assert entered.pool is first.pool
         workers = first.pool.vec._processes
         assert all(p.is_alive() for p in workers)
         with RolloutEngine(*loaded, second, task_description) as stage:

@@ -354,6 +354,12 @@ class _KeptPool:
     def close(self) -> None:
         """Nothing: :func:`kept_pools` closes the pool when its block ends."""
 
+    def __enter__(self) -> _KeptPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 @contextmanager
 def kept_pools() -> Iterator[None]:
