@@ -7,9 +7,13 @@ The MetaWorld demos and R-SFT buffers are small, so :class:`InMemoryFrames` read
 tensors — camera frames (``image`` features) decoded once and kept as uint8, a quarter of the float size —
 and builds each item by indexing them, with LeRobot's own padding rule and image transforms. Everything else
 (``meta``, ``episodes``, ``absolute_to_relative_idx`` …) is the wrapped dataset's. Datasets whose cameras are
-videos stay as they are (:func:`in_memory`): their frames live in the video files.
+videos, or whose items hold a camera history, stay as they are (:func:`in_memory`).
+
+``rows`` serves only some rows (item ``j`` is the wrapped dataset's item ``rows[j]``) and decodes only their
+camera frames: R-SFT's fine-tune reads a buffer's decision frames, one in ``n_action_steps``.
 """
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -19,21 +23,25 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 
 class InMemoryFrames(torch.utils.data.Dataset):
-    """``dataset[i]`` from tensors held in memory; identical items to the wrapped dataset's (no video cameras)."""
+    """``dataset[rows[i]]`` from tensors held in memory; identical items to the wrapped dataset's (no video
+    cameras). ``rows``: the rows served, all of them by default."""
 
-    def __init__(self, dataset: LeRobotDataset) -> None:
+    def __init__(self, dataset: LeRobotDataset, rows: Sequence[int] | None = None) -> None:
         if dataset.meta.video_keys:
             raise ValueError(f"InMemoryFrames serves datasets without videos; this one has {dataset.meta.video_keys}")
+        if set(dataset.delta_timestamps or {}) & set(dataset.meta.image_keys):
+            raise ValueError("InMemoryFrames serves no camera history (delta_timestamps on an image key)")
         self.dataset = dataset
         self.image_keys = list(dataset.meta.image_keys)
         table = dataset.hf_dataset
-        rows = table.select_columns([c for c in table.column_names if c not in self.image_keys])[:]
+        values = table.select_columns([c for c in table.column_names if c not in self.image_keys])[:]
         self.columns: dict[str, Any] = {
-            key: torch.stack(values) if values and isinstance(values[0], torch.Tensor) else values
-            for key, values in rows.items()
+            key: torch.stack(column) if column and isinstance(column[0], torch.Tensor) else column
+            for key, column in values.items()
         }
-        for key in self.image_keys:
-            self.columns[key] = _uint8_frames(table.select_columns([key]), key)
+        self.rows = np.arange(len(table)) if rows is None else np.asarray(rows, dtype=np.int64)
+        images = table if rows is None else table.select(self.rows.tolist())
+        self.frames = {key: _uint8_frames(images.select_columns([key]), key) for key in self.image_keys}
         episodes = dataset.meta.episodes
         self.episode_bounds = {
             int(e): (int(a), int(b))
@@ -50,7 +58,7 @@ class InMemoryFrames(torch.utils.data.Dataset):
         self.task_names = list(dataset.meta.tasks.index)
 
     def __len__(self) -> int:
-        return len(self.dataset)
+        return len(self.rows)
 
     def __getattr__(self, name: str) -> Any:
         if name == "dataset":  # not yet set (unpickling): no recursion
@@ -58,9 +66,9 @@ class InMemoryFrames(torch.utils.data.Dataset):
         return getattr(self.dataset, name)
 
     def __getitem__(self, idx: int) -> dict[str, Any]:
-        item = {key: column[idx] for key, column in self.columns.items()}
+        item = {key: column[self.rows[idx]] for key, column in self.columns.items()}
         for key in self.image_keys:  # as LeRobot's transform makes them: float in [0, 1], (C, H, W)
-            item[key] = item[key].float().div(255)
+            item[key] = self.frames[key][idx].float().div(255)
             if self.dataset.image_transforms is not None:
                 item[key] = self.dataset.image_transforms(item[key])
         absolute = int(item["index"])
@@ -83,6 +91,10 @@ def _uint8_frames(table: Any, key: str, rows_per_read: int = 1024) -> torch.Tens
     return torch.cat(parts)
 
 
-def in_memory(dataset: LeRobotDataset) -> LeRobotDataset | InMemoryFrames:
-    """The dataset served from memory unless its cameras are videos (then the dataset itself)."""
-    return dataset if dataset.meta.video_keys else InMemoryFrames(dataset)
+def in_memory(dataset: LeRobotDataset, rows: Sequence[int] | None = None) -> torch.utils.data.Dataset | InMemoryFrames:
+    """The dataset (its ``rows``, all by default) served from memory, unless its cameras are videos or its items
+    hold a camera history (then the dataset itself, or its ``Subset``)."""
+    camera_history = set(dataset.delta_timestamps or {}) & set(dataset.meta.image_keys)
+    if not dataset.meta.video_keys and not camera_history:
+        return InMemoryFrames(dataset, rows)
+    return dataset if rows is None else torch.utils.data.Subset(dataset, list(rows))

@@ -47,10 +47,15 @@ def test_camera_frames_equal_lerobot_datasets(tmp_path):
     make_synthetic_dataset(tmp_path / "cam", episode_lengths=(5, 7), image_shape=(8, 8, 3))
     ds = LeRobotDataset("local/synthetic", root=tmp_path / "cam", delta_timestamps=DELTAS)
     fast = in_memory(ds)
-    assert isinstance(fast, InMemoryFrames) and fast.columns["observation.images.cam"].dtype == torch.uint8
+    assert isinstance(fast, InMemoryFrames) and fast.frames["observation.images.cam"].dtype == torch.uint8
     for i in range(len(ds)):
         assert_same_item(ds[i], fast[i])
     assert fast[3]["observation.images.cam"].std() > 0.2  # random pixels, not a blank frame
+    rows = [9, 0, 5, 6]  # some rows, in any order: the same items, and only their frames decoded
+    some = in_memory(ds, rows)
+    assert len(some) == 4 and len(some.frames["observation.images.cam"]) == 4
+    for j, row in enumerate(rows):
+        assert_same_item(ds[row], some[j])
 
 
 def test_video_datasets_are_left_alone(monkeypatch, tmp_path):
@@ -59,6 +64,16 @@ def test_video_datasets_are_left_alone(monkeypatch, tmp_path):
     monkeypatch.setattr(type(ds.meta), "video_keys", property(lambda self: ["observation.images.cam"]))
     assert in_memory(ds) is ds
     with pytest.raises(ValueError, match="without videos"):
+        InMemoryFrames(ds)
+
+
+def test_camera_history_is_left_alone(tmp_path):
+    make_synthetic_dataset(tmp_path / "cam", episode_lengths=(5,), image_shape=(8, 8, 3))
+    ds = LeRobotDataset(
+        "local/synthetic", root=tmp_path / "cam", delta_timestamps={"observation.images.cam": [-0.1, 0]}
+    )
+    assert in_memory(ds) is ds and list(in_memory(ds, [3, 1]).indices) == [3, 1]
+    with pytest.raises(ValueError, match="camera history"):
         InMemoryFrames(ds)
 
 

@@ -308,24 +308,25 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     for path in tqdm(files, desc="writing R-SFT buffer", leave=False):
         task = path.parent.name
         seed, attempt = (int(x) for x in path.stem.split("_"))
-        with np.load(path) as ep:
-            steps = ep["decision_steps"]
-            skill = np.searchsorted(steps, np.arange(len(ep["actions"])), side="right") - 1
-            for t in range(len(ep["actions"])):
-                frame = {
-                    "observation.state": ep["states"][t],
-                    "action": ep["actions"][t],
-                    SKILL_TOKENS_KEY: ep["tokens"][skill[t]].astype(np.int64),
-                    SKILL_START_KEY: np.array([int(steps[skill[t]] == t)], dtype=np.int64),
-                    SKILL_STEP_KEY: np.array([skill[t]], dtype=np.int64),
-                    TASK_KEY: task,
-                    SEED_KEY: np.array([seed], dtype=np.int64),
-                    ATTEMPT_KEY: np.array([attempt], dtype=np.int64),
-                    TEMPERATURE_KEY: np.array([ep["temperature"]], dtype=np.float32),
-                    "task": world.task_description(task),
-                }
-                frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
-                ds.add_frame(frame)
+        with np.load(path) as archive:
+            ep = dict(archive)  # each array read once: an NpzFile decompresses an array on every ``ep[key]``
+        steps = ep["decision_steps"]
+        skill = np.searchsorted(steps, np.arange(len(ep["actions"])), side="right") - 1
+        for t in range(len(ep["actions"])):
+            frame = {
+                "observation.state": ep["states"][t],
+                "action": ep["actions"][t],
+                SKILL_TOKENS_KEY: ep["tokens"][skill[t]].astype(np.int64),
+                SKILL_START_KEY: np.array([int(steps[skill[t]] == t)], dtype=np.int64),
+                SKILL_STEP_KEY: np.array([skill[t]], dtype=np.int64),
+                TASK_KEY: task,
+                SEED_KEY: np.array([seed], dtype=np.int64),
+                ATTEMPT_KEY: np.array([attempt], dtype=np.int64),
+                TEMPERATURE_KEY: np.array([ep["temperature"]], dtype=np.float32),
+                "task": world.task_description(task),
+            }
+            frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
+            ds.add_frame(frame)
         ds.save_episode()
     ds.finalize()
     replace_dir(work, out)
@@ -379,9 +380,9 @@ def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list
     check_demos(cfg)
     fps = LeRobotDatasetMetadata(cfg.demos_repo_id, root=cfg.demos_root).fps
     chunk = {"action": [i / fps for i in range(policy.config.chunk_size)]}
-    ds = in_memory(LeRobotDataset(cfg.demos_repo_id, root=cfg.demos_root, delta_timestamps=chunk, video_backend="pyav"))
+    ds = LeRobotDataset(cfg.demos_repo_id, root=cfg.demos_root, delta_timestamps=chunk, video_backend="pyav")
     picked = torch.randperm(len(ds), generator=torch.Generator().manual_seed(cfg.seed))[: min(count, len(ds))]
-    frames = torch.utils.data.Subset(ds, picked.tolist())
+    frames = in_memory(ds, picked.tolist())
     tokens = []
     policy.autoencoder.eval()
     with torch.no_grad():
@@ -394,7 +395,7 @@ def _fine_tune_items(
     cfg: RSFTConfig, policy: CSOPolicy, pre: Any, ds: LeRobotDataset, starts: np.ndarray
 ) -> torch.utils.data.Dataset:
     """The fine-tune's items: the buffer's decision frames, plus ``demo_fraction`` of demonstration frames."""
-    items: torch.utils.data.Dataset = torch.utils.data.Subset(in_memory(ds), starts.tolist())
+    items = in_memory(ds, starts.tolist())  # only the decision frames' camera frames are decoded
     if cfg.demo_fraction:
         keys = [*policy.config.input_features, "task"]
         count = round(len(starts) * cfg.demo_fraction / (1 - cfg.demo_fraction))
