@@ -27,9 +27,9 @@ of the config the results file is tied to:
 
     python benchmarks/mw_proxy.py --results=benchmarks/results/other.json --rsft.successes_per_task=200
 
-The camera benchmark (issue 33) is this driver on the camera demo's config:
+The camera benchmark (issue 33) is this driver on the camera config (the camera demo is it at a smaller budget):
 
-    python benchmarks/mw_proxy.py --config=configs/metaworld_vision_demo.yaml --work=outputs/mw_vision \
+    python benchmarks/mw_proxy.py --config=configs/metaworld_vision.yaml --work=outputs/mw_vision \
         --results=benchmarks/results/mw_vision.json --methods=il,rsft,cso,spo_only,cso_no_freeze
 """
 

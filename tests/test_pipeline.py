@@ -254,10 +254,10 @@ def mw_proxy():
 def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
     """benchmarks/results/mw_proxy.json resumes from configs/mw_proxy.yaml (the driver's default: the demo's config
     with --rsft.successes_per_task=200 --rsft.advantage_weighted=true, nothing else), mw_proxy_demo.json from the
-    demo's config, mw_proxy_n200.json from it with --rsft.successes_per_task=200, and mw_proxy_s7.json from
-    configs/mw_proxy_s7.yaml: each recorded config is that file's spec (settings added later, at their
-    behave-as-before values, left out); another config is refused; a resuming command is appended to the file's
-    commands, its latest one is not repeated."""
+    demo's config, mw_proxy_n200.json from it with --rsft.successes_per_task=200, mw_proxy_s7.json from
+    configs/mw_proxy_s7.yaml and mw_vision.json from configs/metaworld_vision.yaml: each recorded config is that
+    file's spec (settings added later, at their behave-as-before values, left out); another config is refused; a
+    resuming command is appended to the file's commands, its latest one is not repeated."""
     parse = functools.cache(lambda name, overrides: mw_proxy.pipeline_config(ROOT / "configs" / name, list(overrides)))
 
     def config(name: str, *overrides: str, **changes) -> dict:
@@ -304,6 +304,11 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
         for other in others:
             with pytest.raises(SystemExit, match="holds results of another config"):
                 mw_proxy.load(path, "test", other)
+    # The camera benchmark's results resume from configs/metaworld_vision.yaml, not from the demo's smaller budget.
+    vision = ROOT / "benchmarks" / "results" / "mw_vision.json"
+    assert mw_proxy.load(vision, "test", config("metaworld_vision.yaml"))["methods"]["cso"]["per_seed"]
+    with pytest.raises(SystemExit, match="holds results of another config"):
+        mw_proxy.load(vision, "test", config("metaworld_vision_demo.yaml"))
     # Settings given on the command line over --config reach the config.
     assert mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", [n200]).rsft.successes_per_task == 200
 
