@@ -13,6 +13,7 @@ MuJoCo arm in the scene ``--scene`` placed from ``--scene-seed``, publishes the 
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -34,6 +35,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):  # NaN passes every `value <= 0` check
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
 def _pose(text: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -41,16 +52,22 @@ def _pose(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected 6 comma-separated angles in radians, got {text!r}") from None
     if len(values) != 6:
         raise argparse.ArgumentTypeError(f"expected 6 comma-separated angles in radians, got {len(values)}")
+    if not all(map(math.isfinite, values)):
+        raise argparse.ArgumentTypeError(f"the angles must be finite numbers, got {text!r}")
     return values
 
 
 def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    value = _finite(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = _finite(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
 
 
@@ -63,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--role", choices=("follower", "leader"), default="follower")
     p.add_argument("--profile", choices=("full", "light"), default="full", help="light: joints, status, 0x26x")
     p.add_argument("--rate-scale", type=_positive, default=1.0, help="wall-clock speed-up of the 200 Hz cycle")
-    p.add_argument("--enable-latency-ms", type=float, default=20.0)
+    p.add_argument("--enable-latency-ms", type=_non_negative, default=20.0)
     p.add_argument("--start-enabled", action="store_true", help="start enabled in CAN mode (hardware link)")
     p.add_argument("--disabled-behaviour", choices=("hold", "drop"), default="hold")
     p.add_argument("--limit-policy", choices=("clamp", "reject"), default="clamp")

@@ -17,6 +17,7 @@ On a simulated clock (``piper_can.clock``) there is no reader thread: every ``st
 
 from __future__ import annotations
 
+import errno
 import logging
 import threading
 from collections import Counter, deque
@@ -91,11 +92,14 @@ def open_bus(interface: str, channel: str, bitrate: int, bus_options: Mapping[st
     try:
         return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **bus_options)
     except Exception as exc:  # python-can raises OSError, CanError, ValueError, ImportError ...
-        hint = (
-            f"; bring the adapter up with: sudo ip link set {channel} up type can bitrate {bitrate}"
-            if interface == "socketcan"
-            else ""
-        )
+        hint = ""
+        if interface == "socketcan":
+            hint = f"; bring the adapter up with: sudo ip link set {channel} up type can bitrate {bitrate}"
+            if isinstance(exc, OSError) and exc.errno == errno.EAFNOSUPPORT:  # no SocketCAN in this kernel (yet)
+                hint = (
+                    "; this kernel has no SocketCAN support loaded: load it with sudo modprobe can can_raw (and your "
+                    f"adapter's driver, e.g. gs_usb), then{hint.removeprefix(';')}"
+                )
         raise PiperConnectionError(
             f"cannot open CAN bus {interface}:{channel}: {type(exc).__name__}: {exc}{hint}"
         ) from exc

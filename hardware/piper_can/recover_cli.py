@@ -64,13 +64,17 @@ def _name(kind: type[CtrlMode] | type[MoveMode], value: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=f"{PROG}: %(message)s")
-    config = DriverConfig(
-        interface=args.interface,
-        channel=args.channel,
-        bitrate=args.bitrate,
-        bus_options={} if args.port is None else {"port": args.port},
-        feedback_timeout_s=args.feedback_timeout_s,
-    )
+    try:
+        config = DriverConfig(
+            interface=args.interface,
+            channel=args.channel,
+            bitrate=args.bitrate,
+            bus_options={} if args.port is None else {"port": args.port},
+            feedback_timeout_s=args.feedback_timeout_s,
+        )
+    except ValueError as exc:  # a setting out of range, as the driver checks it
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
     driver = PiperDriver(config)
     try:
         driver.connect()
