@@ -117,20 +117,25 @@ class EpisodeJournal:
     """``root/spec.json``, ``root/episodes/<group>/<name>.npz`` and ``root/records/<group>/<name>.json``.
 
     ``spec`` is what the journal's content depends on; opening a journal that holds a different one raises
-    ``UsageError`` (``what`` names the content in that message).
+    ``UsageError`` (``what`` names the content in that message). A journal that holds nothing yet (left by a run
+    that failed before its first episode, e.g. a robot that did not connect) takes the new spec.
     """
 
     def __init__(self, root: Path, spec: dict[str, Any], what: str = "a collection") -> None:
         self.root = root
         stored = read_json(root / "spec.json")
-        if stored is not None and stored != spec:
+        if stored is not None and stored != spec and not self._empty():
             raise UsageError(
                 f"{root} holds {what} made with other settings ({stored}); delete it or choose another --output_dir"
             )
         (root / "episodes").mkdir(parents=True, exist_ok=True)
         (root / "records").mkdir(parents=True, exist_ok=True)
-        if stored is None:
+        if stored != spec:
             write_json(root / "spec.json", spec)
+
+    def _empty(self) -> bool:
+        """Whether no episode or record has been written."""
+        return not any(p.is_file() for d in ("episodes", "records") for p in (self.root / d).rglob("*"))
 
     def episode_path(self, group: str, name: str) -> Path:
         return self.root / "episodes" / group / f"{name}.npz"

@@ -5,6 +5,7 @@ draccus's parse errors turned into it, and :func:`check_number`, the one check o
 import math
 import operator
 import os
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -96,11 +97,14 @@ def interrupted_where(error: KeyboardInterrupt) -> str | None:
 
 def check_output_dir(path: Path, flag: str = "--output_dir") -> None:
     """Refuse an output directory that cannot be made or written into (a file, or under a read-only directory),
-    before any work rather than at the first write."""
+    before any work rather than at the first write. Writing is tried (a directory made and removed at once in the
+    nearest existing one), as permission bits do not tell: root ignores them, a read-only mount has none."""
     existing = path.absolute()
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
         raise UsageError(f"{flag}={path}: {existing} is a file, not a directory")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise UsageError(f"{flag}={path}: {existing} is not writable")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".write-test-", dir=existing))
+    except OSError as e:
+        raise UsageError(f"{flag}={path}: {existing} is not writable ({e.strerror})") from None

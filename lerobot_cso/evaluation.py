@@ -18,6 +18,7 @@ each task under the first evaluation seed are also written as videos of the came
 import csv
 import datetime as dt
 import json
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -26,6 +27,7 @@ import numpy as np
 from lerobot.configs import parser
 
 from lerobot_cso import rollout_stage
+from lerobot_cso.durable import output_lock
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
 
@@ -250,7 +252,10 @@ class EvalStage:
 
 @parser.wrap()
 def eval_main(cfg: EvalConfig) -> None:
-    """Entry point of ``lerobot-cso eval``."""
-    rows = evaluate(cfg)
+    """Entry point of ``lerobot-cso eval``: the main process holds the output dir's lock while it evaluates."""
+    from lerobot_cso import distributed
+
+    with output_lock(cfg.output_dir) if distributed.is_main() else nullcontext():
+        rows = evaluate(cfg)
     print(markdown_table(rows))
     print(f"\nwrote {cfg.output_dir}/eval.json, eval.csv, eval.png")

@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
@@ -337,3 +338,30 @@ def test_damaged_or_foreign_inputs_are_one_line_naming_the_file(two_policies, tm
     episode.write_bytes(b"PK\x03\x04 cut short")
     with pytest.raises(UsageError, match=f"^{episode} is damaged"):
         EpisodeJournal.load(episode)
+
+
+def test_eval_holds_its_output_dirs_lock_and_refuses_an_unwritable_one(
+    two_policies, tmp_path, capsys, scripted_rollouts
+):
+    """Issue 35, items 4 and 5: a second ``eval`` on one output dir ran beside the first, and one that cannot be
+    written (permission bits do not tell: root, a read-only mount) lost the whole evaluation at its first write."""
+    out = tmp_path / "eval"
+    evaluation = ["eval", f"--policy.path={two_policies[0]}", f"--tasks={TASKS[0]}", "--episodes_per_task=2"]
+    with output_lock(out):
+        code, _, err = run_cli([*evaluation, f"--output_dir={out}"], capsys)
+    assert code == 2 and err.startswith(f"error: {out} is being written by another run (pid {os.getpid()}: ")
+    unwritable = Path("/proc/lerobot_cso_eval")
+    code, _, err = run_cli([*evaluation, f"--output_dir={unwritable}"], capsys)
+    assert code == 2 and err.startswith(f"error: --output_dir={unwritable}: /proc is not writable (")
+
+
+def test_an_empty_journal_takes_the_settings_of_a_corrected_command(tmp_path):
+    """Issue 35, item 8: a robot that did not connect left an empty journal whose settings then refused the
+    corrected command; a journal holding an episode is still refused."""
+    root = tmp_path / "robot_journal"
+    EpisodeJournal(root, {"fps": 10})
+    journal = EpisodeJournal(root, {"fps": 20})
+    assert json.loads((root / "spec.json").read_text()) == {"fps": 20}
+    journal.save_episode("task", "0000000_001", {"success": np.bool_(True)})
+    with pytest.raises(UsageError, match=f"^{root} holds a robot journal made with other settings"):
+        EpisodeJournal(root, {"fps": 10}, what="a robot journal")
