@@ -43,6 +43,10 @@ ADDED_SETTINGS: dict[str, Any] = {
         "fps": None,
         "on_fault": "stop",
     },
+    # --operator.type=twin's settings (issue 36), at their defaults in every robot record made before them.
+    "state_group": "239.74.1.1",
+    "state_port": 43200,
+    "scene_seed": 0,
 }
 
 
@@ -106,11 +110,10 @@ def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
 
 
 def without_added_settings(spec: Any) -> Any:
-    """``spec`` (JSON data) without the :data:`ADDED_SETTINGS` that hold their behave-as-before value, at any depth."""
+    """``spec`` (JSON data) without the :data:`ADDED_SETTINGS` that hold their behave-as-before value, at any depth;
+    a setting's value is judged without the settings added inside it (an operator with a later field at its
+    default is still the default operator)."""
     if isinstance(spec, dict):
-        return {
-            k: without_added_settings(v)
-            for k, v in spec.items()
-            if not (k in ADDED_SETTINGS and v == ADDED_SETTINGS[k])
-        }
+        stripped = {k: without_added_settings(v) for k, v in spec.items()}
+        return {k: v for k, v in stripped.items() if not (k in ADDED_SETTINGS and v == ADDED_SETTINGS[k])}
     return spec

@@ -415,7 +415,7 @@ def test_an_unknown_operator_is_one_error_line(other_policies, capsys, monkeypat
     args = ["eval", f"--policy.path={other_policies['camera']}", "--robot.type=piper_follower", f"--tasks={TASK}"]
     assert cli.main([*args, f"--output_dir={tmp_path}", "--operator.fps=30", "--operator.type=mouse"]) == 2
     assert capsys.readouterr().err.strip().splitlines() == [
-        "error: operator.type must be one of keyboard, scripted, got 'mouse'"
+        "error: operator.type must be one of keyboard, scripted, twin, got 'mouse'"
     ]
 
 

@@ -24,7 +24,13 @@ from piper_twin.demo import ScriptedDemo
 from piper_twin.model import GRIPPER_MAX_M, arm_spec
 from piper_twin.plant import TwinPlant
 from piper_twin.scenes import CubeInBowl, PressButton
-from piper_twin.state_channel import PlacementRequests, StatePublisher, StateReceiver, TwinSnapshot
+from piper_twin.state_channel import (
+    PlacementRequests,
+    StatePublisher,
+    StateReceiver,
+    TwinSnapshot,
+    request_placement,
+)
 
 RAISED = (0.3, 1.2, -1.0, 0.2, 0.5, 0.1)
 KEYS = [*(f"joint_{j}.pos" for j in range(1, 7)), "gripper.pos"]
@@ -298,6 +304,51 @@ def test_an_operator_places_the_objects_for_a_seed_and_reads_the_verdict_over_th
     with pytest.raises(TimeoutError, match="did not place seed 8"):
         nobody.place(8, timeout_s=0.1)
     nobody.close()
+
+
+def test_the_twin_operator_places_each_state_from_its_seed_and_labels_the_episode_from_the_scene(monkeypatch):
+    """``--operator.type=twin``: state i placed from seed scene_seed + i (every attempt alike), the scene's success
+    as the verdict, no verdict without it; a twin that is silent, stale or rearranged by another is an error."""
+    from lerobot_cso.worlds.robot import operator
+
+    monkeypatch.setattr(operator, "TWIN_WAIT_S", 0.2)
+    with pytest.raises(operator.TwinNotFound, match="no PiPER twin state on .* within 0.2 s; start piper-emulator"):
+        operator.TwinOperator(*unique_udp_channel(), scene_seed=10, robot=lambda: None)
+    group, port = unique_udp_channel()
+    plant = TwinPlant("press_button", seed=0, pose_rad=RAISED)
+    publishing = Publishing(plant, group, port)
+    monkeypatch.setattr(operator, "TWIN_WAIT_S", 2.0)
+    monkeypatch.setattr(operator, "TWIN_SETTLE_S", 0.0)  # the plant here is not stepped: its time stands still
+    twin = operator.TwinOperator(group, port, scene_seed=10, robot=lambda: None)
+    placements = [plant.snapshot().placement]
+    try:
+        for attempt in (1, 2):
+            episode = operator.EpisodeInfo(state=3, attempt=attempt, attempts=2, retry=0, horizon=30)
+            assert twin.ready(episode)
+            with publishing.lock:
+                placed = plant.snapshot()
+            assert placed.seed == 13 and placed.placement > placements[-1] and not placed.success
+            placements.append(placed.placement)
+            assert np.allclose(placed.mocap_pos, TwinPlant("press_button", seed=13).snapshot().mocap_pos)
+            assert twin.verdict(episode, {}, tick=0) is None
+        with publishing.lock:  # the arm presses the button
+            plant.data.qpos[plant.model.joint("button").qposadr[0]] = -0.007
+            plant.step(0.005, PlantCommand(RAISED, (0.0,) * 6, ("servo",) * 6, 0.0, "servo"))
+        assert _eventually(lambda: twin.verdict(episode, {}, tick=1) == "success")
+        request_placement(14, group, port)  # someone else arranges another scene mid-episode
+        assert _eventually(lambda: twin.receiver.latest().seed == 14)
+        with pytest.raises(RuntimeError, match="placed for seed 14 during this episode of seed 13"):
+            twin.verdict(episode, {}, tick=2)
+        twin.wait_for_recovery(episode)  # unattended: one reconnect, then stop
+        with pytest.raises(operator.OperatorQuit, match="did not reconnect after the fault in state 3, attempt 2"):
+            twin.wait_for_recovery(episode)
+        publishing.stop()  # the emulator stopped
+        time.sleep(0.6)
+        with pytest.raises(TimeoutError, match=r"no PiPER twin state for .* s \(limit 0.5 s\): the emulator stopped"):
+            twin.verdict(episode, {}, tick=3)
+    finally:
+        twin.close()
+        publishing.stop()
 
 
 def _eventually(condition, timeout_s: float = 1.0) -> bool:

@@ -11,6 +11,10 @@ disconnected, the operator recovers the faulted one, and both are connected agai
 (:meth:`~lerobot_cso.worlds.robot.devices.Devices.recover`) before the attempt is repeated. A robot or
 teleoperator that does not connect ends the command with one line too.
 
+**Simulated time.** A robot with a ``simulated_fps`` attribute (the PiPER twin in process, ``piper_twin_sim``) lets
+one control period of its own time pass in each ``send_action``; the rest moves and the episodes then do not wait
+for the wall clock (faster than real time), while the arrange phase still does (a person arranges in real time).
+
 **Durability.** Every finished episode is written to the journal (:class:`~lerobot_cso.rollout.journal.TraceJournal`,
 one ``.npz`` per episode with the controller's record) the moment it ends, before the stage sees it; discarded
 tries are recorded there too. A rerun of the same command replays the journaled episodes of each request instead
@@ -61,7 +65,15 @@ class RobotBackend:
     ) -> None:
         self.fps, self.horizon, self.cameras = fps, horizon, tuple(cameras)
         self.timing, self.display, self.journal, self.devices = timing, display, journal, devices
-        self.operator: Operator = make_operator(timing)
+        # A robot on simulated time (PiPER: piper_twin_sim) lets one control period pass in each send_action.
+        simulated = getattr(self.robot, "simulated_fps", None)
+        if simulated is not None and simulated != fps:
+            raise UsageError(
+                f"robot {self.robot.name} runs on simulated time at {simulated} fps, the control loop at {fps}: "
+                f"give --robot.fps={fps}"
+            )
+        self.simulated = simulated is not None
+        self.operator: Operator = make_operator(timing, lambda: self.robot)
         self.state_keys, self.action_keys = state_keys(self.robot), list(self.robot.action_features)
         try:
             measured = self.devices.connect()
@@ -152,8 +164,15 @@ class RobotBackend:
     def _send(self, action: np.ndarray) -> dict[str, Any]:
         return self.robot.send_action(dict(zip(self.action_keys, map(float, action), strict=True)))
 
-    def _tick(self, started: float) -> None:
+    def _wait(self, started: float) -> None:
+        """Wait on the wall clock until one control period has passed since ``started``."""
         precise_sleep(max(0.0, 1 / self.fps - (time.perf_counter() - started)))
+
+    def _tick(self, started: float) -> None:
+        """The next control tick of a move or an episode: on simulated time the robot's ``send_action`` already let
+        the period pass."""
+        if not self.simulated:
+            self._wait(started)
 
     def _move_to_rest(self) -> None:
         """Interpolate from the measured pose to the rest pose over ``rest_time_s``."""
@@ -184,7 +203,7 @@ class RobotBackend:
                 self._show(obs, sent, None)
             if self.operator.ready(info):
                 break
-            self._tick(started)
+            self._wait(started)  # a person arranges in real time, also on simulated time
         if self.teleop is not None:
             self._move_to_rest()
 

@@ -18,6 +18,11 @@ fault, when the arm is recovered and may be connected again (:meth:`Operator.wai
   every value named in the state's target is within ``tolerance`` of it. ``gates`` hold an episode in its
   arrange phase until a file exists (a test stops or faults the command there); a gate keyed
   ``"recover/<state>/<attempt>/<retry>"`` holds the wait after a fault of that try (no such gate: stop).
+* :class:`TwinOperator` (``--operator.type=twin``): the PiPER's physics twin runs the collection unattended. It
+  places the scene's objects for state ``i`` from seed ``scene_seed + i`` (every attempt of a state alike) and takes
+  the scene's own success as the verdict; no success by the time limit is a failure. The twin is a
+  ``piper-emulator --physics`` process, whose world state it reads on ``--operator.state_group`` /
+  ``--operator.state_port``, or the robot itself when that holds it in process (``piper_twin_sim``: its ``plant``).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -33,21 +39,33 @@ from lerobot_cso.errors import UsageError, check_number
 
 Verdict = Literal["success", "failure", "discard"]
 VERDICTS: tuple[str, ...] = ("success", "failure", "discard")
-OPERATORS: tuple[str, ...] = ("keyboard", "scripted")
+OPERATORS: tuple[str, ...] = ("keyboard", "scripted", "twin")
 ON_FAULT: tuple[str, ...] = ("stop", "wait")
 POLL_S = 0.05  # how often a waiting operator is polled
+TWIN_WAIT_S = 5.0  # how long the twin operator waits for the twin's first state and for a placement
+TWIN_MAX_AGE_S = 0.5  # a twin state older than this: the emulator stopped
+TWIN_SETTLE_S = 0.3  # the twin's time from placing the objects to the start (they come to rest, the arm settles)
 
 
 class OperatorQuit(SystemExit):
     """The operator asked to stop; the command ends with this one-line message (exit code 1)."""
 
 
+class TwinNotFound(SystemExit):
+    """``--operator.type=twin`` heard no twin; the command ends with this one-line message (exit code 1)."""
+
+
 @dataclass
 class OperatorConfig:
     """``--operator.*``: who labels the episodes, and the timing of a robot episode."""
 
-    type: str = "keyboard"  # keyboard | scripted
+    type: str = "keyboard"  # keyboard | scripted | twin
     script: Path | None = None  # scripted: the JSON file of targets and key presses
+    # twin: the world state of piper-emulator --physics (its --state-group / --state-port); state i is placed
+    # from seed scene_seed + i.
+    state_group: str = "239.74.1.1"
+    state_port: int = 43200
+    scene_seed: int = 0
     episode_time_s: float = 30.0  # the policy's time limit per episode (no verdict by then: failure)
     rest_time_s: float = 3.0  # duration of the smooth move to the rest pose before each episode
     # The rest pose in the robot's action order (PiPER: joint_1..joint_6 in rad, gripper in m);
@@ -64,6 +82,8 @@ class OperatorConfig:
             raise UsageError(f"operator.type must be one of {', '.join(OPERATORS)}, got '{self.type}'")
         if self.type == "scripted" and (self.script is None or not Path(self.script).is_file()):
             raise UsageError(f"--operator.type=scripted needs --operator.script=<a JSON file>, got {self.script}")
+        check_number("operator.state_port", self.state_port, gt=0, lt=65535)
+        check_number("operator.scene_seed", self.scene_seed, ge=0)
         check_number("operator.episode_time_s", self.episode_time_s, gt=0)
         check_number("operator.rest_time_s", self.rest_time_s, ge=0)
         if self.fps is not None and self.fps < 1:
@@ -213,8 +233,92 @@ class ScriptedOperator:
         pass
 
 
-def make_operator(config: OperatorConfig) -> Operator:
-    """The operator ``config`` names."""
+class TwinOperator:
+    """The PiPER twin's scene arranges and labels: objects placed by seed, the scene's success as the verdict.
+
+    ``robot()`` is the robot being run: one that holds the twin (``plant``, a ``piper_twin.plant.TwinPlant``, and
+    ``pass_time(seconds)``) is asked directly; otherwise the twin is another process, reached over its state channel
+    (``piper_twin.state_channel``). The twin package is imported here, never by other worlds."""
+
+    def __init__(self, group: str, port: int, scene_seed: int, robot: Callable[[], Any]) -> None:
+        self.robot, self.scene_seed = robot, scene_seed
+        self._seed: int | None = None  # the seed the episode being run was placed from
+        self._recovering: EpisodeInfo | None = None  # the try whose fault was already answered by a reconnect
+        self.receiver: Any = None
+        if self._plant() is not None:
+            return
+        try:
+            from piper_twin.state_channel import StateReceiver
+        except ImportError as exc:
+            raise UsageError(
+                f"--operator.type=twin needs the twin extra: pip install -e './hardware[twin]' ({exc})"
+            ) from None
+        self.receiver = StateReceiver(group, port)
+        if self.receiver.wait(TWIN_WAIT_S) is None:
+            self.receiver.close()
+            raise TwinNotFound(
+                f"error: no PiPER twin state on {group}:{port} within {TWIN_WAIT_S:g} s; start piper-emulator "
+                f"--physics --scene=<task> --state-group={group} --state-port={port}"
+            )
+
+    def _plant(self) -> Any:
+        """The twin in this process, or None."""
+        return getattr(self.robot(), "plant", None)
+
+    def ready(self, episode: EpisodeInfo) -> bool:
+        """Place the objects for the state's seed and let the twin run ``TWIN_SETTLE_S`` before the start."""
+        seed, plant = self.scene_seed + episode.state, self._plant()
+        if plant is not None:
+            plant.place(seed)
+            self.robot().pass_time(TWIN_SETTLE_S)
+            scene = plant.scene.name
+        else:
+            placed = self.receiver.place(seed, timeout_s=TWIN_WAIT_S)
+            deadline = time.monotonic() + TWIN_WAIT_S
+            while self.receiver.latest().time_s < placed.time_s + TWIN_SETTLE_S:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the twin's time did not advance {TWIN_SETTLE_S} s in {TWIN_WAIT_S:g} s")
+                time.sleep(0.005)
+            scene = placed.scene
+        self._seed = seed
+        print(f">>> {episode.prompt()}: the twin placed {scene} from seed {seed}", flush=True)
+        return True
+
+    def verdict(self, episode: EpisodeInfo, observation: dict[str, Any], tick: int) -> Verdict | None:
+        plant = self._plant()
+        if plant is not None:
+            return "success" if plant.succeeded() else None
+        snapshot = self.receiver.latest()
+        age = time.time() - snapshot.wall_time_s
+        if age > TWIN_MAX_AGE_S:
+            raise TimeoutError(f"no PiPER twin state for {age:.2f} s (limit {TWIN_MAX_AGE_S} s): the emulator stopped")
+        if snapshot.seed != self._seed:  # (a repeat of our own request may place the same seed again)
+            raise RuntimeError(
+                f"the twin's objects were placed for seed {snapshot.seed} during this episode of seed {self._seed}: "
+                "something else arranges the scene"
+            )
+        return "success" if snapshot.success else None
+
+    def wait_for_recovery(self, episode: EpisodeInfo) -> None:
+        """Nobody can recover the arm: reconnect once (``--robot.recovery`` says how a faulted arm is enabled),
+        then stop."""
+        if self._recovering == episode:
+            raise OperatorQuit(
+                f"error: the twin did not reconnect after the fault in state {episode.state}, attempt "
+                f"{episode.attempt} (--robot.recovery=reset resets a faulted arm); rerun to resume"
+            )
+        self._recovering = episode
+        print(">>> unattended: reconnecting once", flush=True)
+
+    def close(self) -> None:
+        if self.receiver is not None:
+            self.receiver.close()
+
+
+def make_operator(config: OperatorConfig, robot: Callable[[], Any] = lambda: None) -> Operator:
+    """The operator ``config`` names; ``robot()`` is the robot being run (the twin operator may ask it)."""
     if config.type == "scripted":
         return ScriptedOperator(Path(config.script))
+    if config.type == "twin":
+        return TwinOperator(config.state_group, config.state_port, config.scene_seed, robot)
     return KeyboardOperator()
