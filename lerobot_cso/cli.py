@@ -14,7 +14,7 @@ import importlib
 import sys
 from collections.abc import Callable
 
-from lerobot_cso.errors import UsageError, interrupted_where, parse_errors_as_usage_errors
+from lerobot_cso.errors import UsageError, check_config_path, interrupted_where, parse_errors_as_usage_errors
 
 ROBOT_WORLD_FIELDS = ("robot", "teleop", "operator", "display_data")  # --world.<field>, spelt --<field> for short
 ROLLOUT_STAGES = ("eval", "rsft", "spo")
@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
     register_third_party_plugins()
     try:
+        check_config_path(rest)
         with parse_errors_as_usage_errors():
             _command(name)()
     except UsageError as e:

@@ -30,7 +30,6 @@ already staged or already in the dataset (matched by task and initial-state seed
 duplicated.
 """
 
-import json
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -45,7 +44,14 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
 from lerobot_cso import seeds
-from lerobot_cso.durable import EpisodeJournal, output_lock, replace_dir, restore_interrupted_replace, write_json
+from lerobot_cso.durable import (
+    EpisodeJournal,
+    output_lock,
+    read_json,
+    replace_dir,
+    restore_interrupted_replace,
+    write_json,
+)
 from lerobot_cso.errors import UsageError, check_number, check_output_dir
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
 from lerobot_cso.worlds.base import SimWorld
@@ -110,7 +116,8 @@ class DemosConfig:
         if not settings.scripted_demos:
             raise UsageError(
                 f"{world.name} has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
-                "--demos.dataset_root=<its folder> --demos.repo_id=<its repo id> (e.g. lerobot/libero_spatial)"
+                "--dataset_root=<its folder> --repo_id=<its repo id>, e.g. lerobot/libero_spatial (in the pipeline: "
+                "--demos.dataset_root, --demos.repo_id)"
             )
         if self.episodes_per_task <= 0:
             raise UsageError(f"episodes_per_task must be > 0, got {self.episodes_per_task}")
@@ -196,8 +203,7 @@ def _staged(staging: EpisodeJournal) -> dict[tuple[str, int], bool]:
     """(task, init_seed) → success of every staged episode."""
     out = {}
     for path in staging.episode_files():
-        with np.load(path) as data:
-            out[(path.parent.name, int(path.stem))] = bool(data["success"])
+        out[(path.parent.name, int(path.stem))] = bool(staging.load(path, ("success",))["success"])
     return out
 
 
@@ -209,7 +215,7 @@ def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
     spec_path = out / SPEC_FILE
     if not spec_path.is_file():
         raise UsageError(f"{out} exists and is not a demo dataset of lerobot-cso; choose another --output_dir")
-    spec = without_added_settings(json.loads(spec_path.read_text()))
+    spec = without_added_settings(read_json(spec_path))
     wanted = without_added_settings(cfg.spec())
     if spec != wanted:
         diff = {k: (spec.get(k), v) for k, v in wanted.items() if spec.get(k) != v}

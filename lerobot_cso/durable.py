@@ -78,12 +78,14 @@ def write_json(path: Path, data: Any) -> None:
     write_atomic(path, json.dumps(data, indent=2, default=str).encode())
 
 
-def read_json(path: Path) -> Any | None:
-    """The JSON in ``path``, or None when there is no such file; ``UsageError`` naming a damaged one."""
+def read_json(path: Path, lines: bool = False) -> Any | None:
+    """The JSON in ``path`` (with ``lines``: a list, one value per line, as in ``log.jsonl``), or None when there is
+    no such file; ``UsageError`` naming a damaged one."""
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
+        text = path.read_text()
+        return [json.loads(line) for line in text.splitlines()] if lines else json.loads(text)
     except ValueError as e:  # not JSON (truncated, overwritten), or not UTF-8
         raise UsageError(
             f"{path} is damaged ({e}); delete it, or the output dir holding it, to redo its work"
@@ -150,11 +152,12 @@ class EpisodeJournal:
         return sorted((self.root / "episodes").glob(f"{group or '*'}/*.npz"))
 
     @staticmethod
-    def load(path: Path) -> dict[str, np.ndarray]:
+    def load(path: Path, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """The arrays of an episode file (only ``keys`` when given); ``UsageError`` naming a damaged one."""
         try:
             with np.load(path) as data:
-                return dict(data)
-        except (OSError, ValueError, zipfile.BadZipFile) as e:
+                return {k: data[k] for k in (data.files if keys is None else keys)}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
             raise UsageError(f"{path} is damaged ({e}); delete it and the run redoes that episode") from None
 
     def save_record(self, group: str, name: str, record: dict[str, Any]) -> None:

@@ -1,6 +1,7 @@
 """Bad user input: ``UsageError``, whose message ``lerobot-cso`` prints as one line before exiting non-zero,
 draccus's parse errors turned into it, and :func:`check_number`, the one check of a numeric setting; and
-:func:`check_output_dir`; and :func:`interruptible`, which names the work a Ctrl-C stopped for that line."""
+:func:`check_output_dir` and :func:`check_config_path`; and :func:`interruptible`, which names the work a Ctrl-C
+stopped for that line."""
 
 import math
 import operator
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import draccus
+from draccus.cfgparsing import load_config
 from draccus.utils import ParsingError
 from draccus.wrappers.suppressing_argparse import SuppressingArgumentParser
 
@@ -78,6 +80,28 @@ def check_number(
         raise error(f"{name} must be {wanted.strip()}{' (or null)' if optional else ''}, got {value}")
 
 
+def check_config_path(args: list[str]) -> None:
+    """Refuse a ``--config_path=FILE`` that cannot be read or is not a mapping of settings, naming the file, before
+    LeRobot's parser and draccus read it (they end in a traceback)."""
+    for arg in args:
+        if not arg.startswith("--config_path="):
+            continue
+        path = Path(arg.removeprefix("--config_path="))
+        try:
+            with open(path, encoding="utf-8") as f:
+                settings = load_config(f, file=path)
+        except OSError as e:
+            raise UsageError(f"--config_path={path}: {e.strerror}") from None
+        except (ParsingError, ValueError) as e:  # not YAML / JSON / TOML, or not UTF-8
+            cause = e.__cause__ or e
+            raise UsageError(
+                f"--config_path={path} is not a valid config file ({' '.join(str(cause).split())})"
+            ) from None
+        if not isinstance(settings, dict):
+            held = "nothing" if settings is None else f"a {type(settings).__name__}"
+            raise UsageError(f"--config_path={path} must hold a mapping of settings (key: value), not {held}")
+
+
 @contextmanager
 def interruptible(where: str) -> Iterator[None]:
     """Name the work inside the block on a ``KeyboardInterrupt`` that stops it (the innermost block names it)."""
@@ -98,7 +122,7 @@ def interrupted_where(error: KeyboardInterrupt) -> str | None:
 def check_output_dir(path: Path, flag: str = "--output_dir") -> None:
     """Refuse an output directory that cannot be made or written into (a file, or under a read-only directory),
     before any work rather than at the first write. Writing is tried (a directory made and removed at once in the
-    nearest existing one), as permission bits do not tell: root ignores them, a read-only mount has none."""
+    nearest existing one), as permission bits do not tell: root ignores them, and /proc or /sys refuse root too."""
     existing = path.absolute()
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent

@@ -27,7 +27,7 @@ import numpy as np
 from lerobot.configs import parser
 
 from lerobot_cso import rollout_stage
-from lerobot_cso.durable import output_lock
+from lerobot_cso.durable import output_lock, read_json
 from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
 
@@ -247,7 +247,7 @@ class EvalStage:
 
     def success_rate(self) -> dict[str, Any]:
         """The summary rows of the finished evaluation."""
-        return json.loads((self.cfg.output_dir / "eval.json").read_text())["success_rate"]
+        return read_json(self.cfg.output_dir / "eval.json")["success_rate"]
 
 
 @parser.wrap()

@@ -24,7 +24,7 @@ from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
 
 from lerobot_cso import cli, rollout_stage
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
-from lerobot_cso.cso.spo import SPOConfig
+from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig
 from lerobot_cso.durable import EpisodeJournal, output_lock
 from lerobot_cso.errors import UsageError, check_number
@@ -365,3 +365,43 @@ def test_an_empty_journal_takes_the_settings_of_a_corrected_command(tmp_path):
     journal.save_episode("task", "0000000_001", {"success": np.bool_(True)})
     with pytest.raises(UsageError, match=f"^{root} holds a robot journal made with other settings"):
         EpisodeJournal(root, {"fps": 10}, what="a robot journal")
+
+
+def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming_it(tmp_path, capsys, monkeypatch):
+    """Issue 35, item 3: a missing, unreadable or malformed ``--config_path``, a damaged staged demo episode
+    (``<output_dir>.partial/``) and a damaged SPO ``log.jsonl`` each gave a traceback."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    broken, listing = tmp_path / "broken.yaml", tmp_path / "list.yaml"
+    broken.write_text("tasks: [reach-v3\n  x: : :\n")
+    listing.write_text("- reach-v3\n")
+    cases = {
+        tmp_path / "missing.yaml": ": No such file or directory",
+        tmp_path: ": Is a directory",
+        broken: " is not a valid config file (while parsing a flow sequence",
+        listing: " must hold a mapping of settings (key: value), not a list",
+    }
+    for path, message in cases.items():
+        code, _, err = run_cli(["eval", f"--config_path={path}"], capsys)
+        assert code == 2 and err.startswith(f"error: --config_path={path}{message}"), err
+    demos = DemosConfig(tasks="reach-v3", output_dir=tmp_path / "demos", episodes_per_task=1)
+    staged = EpisodeJournal(tmp_path / "demos.partial", demos.spec())
+    episode = staged.episode_path("reach-v3", "0000001")
+    episode.parent.mkdir()
+    episode.write_bytes(b"PK\x03\x04 cut short")
+    code, _, err = run_cli(
+        ["demos", "--tasks=reach-v3", f"--output_dir={demos.output_dir}", "--episodes_per_task=1"], capsys
+    )
+    assert code == 2 and err.startswith(f"error: {episode} is damaged ("), err
+    log = tmp_path / "spo" / "log.jsonl"
+    log.parent.mkdir()
+    log.write_text('{"iteration": 1}\n{"iteration": 2, "succ')
+    with pytest.raises(UsageError, match=f"^{log} is damaged"):
+        SPOStage(rollout_config(SPOConfig, output_dir=log.parent)).history()
+
+
+def test_demos_of_a_world_without_an_expert_names_this_commands_flags():
+    """Issue 35, item 9: ``lerobot-cso demos --tasks=libero_*`` suggested ``--demos.dataset_root``, the pipeline's."""
+    with pytest.raises(
+        UsageError, match="^libero has no scripted expert .* with --dataset_root=<its folder> --repo_id="
+    ):
+        DemosConfig(tasks="libero_goal-0").validate()

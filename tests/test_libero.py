@@ -291,7 +291,8 @@ def test_pipeline_on_libero_without_a_fitting_dataset_is_one_error_line(
     given = [f"--demos.dataset_root={tiny_dataset}", f"--demos.repo_id={REPO_ID}"]
     cases = [
         ([], "libero has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
-             "--demos.dataset_root=<its folder> --demos.repo_id=<its repo id>"),
+             "--dataset_root=<its folder> --repo_id=<its repo id>, e.g. lerobot/libero_spatial (in the pipeline: "
+             "--demos.dataset_root, --demos.repo_id)"),
         (["--demos.dataset_root=/nonexistent/libero", f"--demos.repo_id={REPO_ID}"],
          f"/nonexistent/libero holds no LeRobotDataset and {REPO_ID} could not be fetched"),
         ([f"--demos.dataset_root={synthetic_dataset}", "--demos.repo_id=local/synthetic"],

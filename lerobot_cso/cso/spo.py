@@ -50,7 +50,7 @@ from lerobot_cso.cso.objectives import (
     reject_uniform_groups,
     surrogate_units,
 )
-from lerobot_cso.durable import ResumableState, replace_dir, write_atomic
+from lerobot_cso.durable import ResumableState, read_json, replace_dir, write_atomic
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.records import run_alone
@@ -507,7 +507,7 @@ class SPOStage(CheckpointStage):
 
     def history(self) -> list[dict[str, float]]:
         """The per-iteration log rows."""
-        return [json.loads(line) for line in (self.cfg.output_dir / "log.jsonl").read_text().splitlines()]
+        return read_json(self.cfg.output_dir / "log.jsonl", lines=True)
 
 
 @parser.wrap()
