@@ -6,7 +6,6 @@ LeRobot's per-item Arrow queries. The pipeline's IL stage runs this.
 """
 
 import logging
-import sys
 
 from lerobot.configs.train import TrainPipelineConfig
 from lerobot.scripts import lerobot_train
@@ -14,20 +13,7 @@ from lerobot.scripts import lerobot_train
 from lerobot_cso.frames import InMemoryFrames, in_memory
 
 
-class _SkipTorchcodecProbe(logging.Filter):
-    """Drops LeRobot's warning that torchcodec cannot load (a page of traceback where FFmpeg is missing).
-
-    LeRobot computes ``--dataset.video_backend``'s default, probing torchcodec, before it reads the flag, so
-    the warning appears even when the command chose pyav.
-    """
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return "torchcodec" not in record.getMessage()
-
-
 def main() -> None:
-    if "--dataset.video_backend=pyav" in sys.argv:
-        logging.getLogger("lerobot.utils.import_utils").addFilter(_SkipTorchcodecProbe())
     make_datasets = lerobot_train.make_train_eval_datasets
 
     def make_in_memory(cfg: TrainPipelineConfig) -> tuple:

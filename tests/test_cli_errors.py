@@ -7,6 +7,7 @@ subprocess is used only where the process itself is what is tested (its exit cod
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import logging
 import math
@@ -21,7 +22,9 @@ import numpy as np
 import pytest
 import torch
 from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
+from lerobot.utils.import_utils import get_safe_default_video_backend
 
+import lerobot_policy_cso
 from lerobot_cso import cli, rollout_stage
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
@@ -405,3 +408,25 @@ def test_demos_of_a_world_without_an_expert_names_this_commands_flags():
         UsageError, match="^libero has no scripted expert .* with --dataset_root=<its folder> --repo_id="
     ):
         DemosConfig(tasks="libero_goal-0").validate()
+
+
+def test_lerobots_torchcodec_probe_page_is_one_line_said_once(monkeypatch, caplog):
+    """Issue 35, item 9: ``lerobot-train`` and ``piper-record`` opened with ~100 lines of libtorchcodec tracebacks
+    (LeRobot's probe, at each of its calls, where FFmpeg is missing); the cso plugin, which both load, shortens it."""
+    load = importlib.import_module
+
+    def no_ffmpeg(name: str, *args):
+        if name == "torchcodec":
+            raise RuntimeError(
+                "Could not load libtorchcodec. Likely causes:\n" + "Traceback (most recent call last):\n" * 30
+            )
+        return load(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", no_ffmpeg)
+    monkeypatch.setattr(lerobot_policy_cso.TORCHCODEC_PROBE, "said", False)
+    monkeypatch.setattr(sys, "argv", ["lerobot-train", "--policy.type=cso"])
+    with caplog.at_level(logging.WARNING, logger="lerobot.utils.import_utils"):
+        assert get_safe_default_video_backend() == get_safe_default_video_backend() == "pyav"
+    assert [r.getMessage() for r in caplog.records] == [
+        "torchcodec cannot load here (no FFmpeg it supports): videos decode with pyav"
+    ]
