@@ -7,7 +7,7 @@ subcommand answer at once.
 Bad input raises :class:`~lerobot_cso.errors.UsageError`: one ``error: ...`` line on stderr, exit code 2 — also
 what the argument parser rejects (an unknown ``--robot.type``, a misspelt option, a value of the wrong type),
 without its usage dump. Ctrl-C ends the command with one line saying where it stopped, exit code 130; the work it
-finished is saved, and the same command resumes from it.
+finished is saved, and the same command resumes from it (an evaluation, written only at its end, starts over).
 """
 
 import importlib
@@ -18,6 +18,8 @@ from lerobot_cso.errors import UsageError, check_config_path, interrupted_where,
 
 ROBOT_WORLD_FIELDS = ("robot", "teleop", "operator", "display_data")  # --world.<field>, spelt --<field> for short
 ROLLOUT_STAGES = ("eval", "rsft", "spo")
+# What a Ctrl-C leaves of a command that writes its output only at the end (the others resume their saved work).
+RESTARTS = {"eval": "nothing is written before it ends, so the same command starts it over"}
 SUBCOMMANDS: dict[str, str] = {  # name -> "module:function"
     "demos": "lerobot_cso.demos:demos_main",
     "eval": "lerobot_cso.evaluation:eval_main",
@@ -74,9 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as e:
         where = interrupted_where(e)
+        # On a line of its own: a progress bar may hold the cursor (the "\n" ends it).
         print(
-            f"interrupted: lerobot-cso {name} stopped{f' in {where}' if where else ''}; the work it finished is "
-            "saved, and the same command resumes from it",
+            f"\ninterrupted: lerobot-cso {name} stopped{f' in {where}' if where else ''}; "
+            f"{RESTARTS.get(name, 'the work it finished is saved, and the same command resumes from it')}",
             file=sys.stderr,
         )
         return 130

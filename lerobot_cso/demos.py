@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 from datasets.utils import logging as hf_logging
 from lerobot.configs import parser
@@ -52,7 +53,7 @@ from lerobot_cso.durable import (
     restore_interrupted_replace,
     write_json,
 )
-from lerobot_cso.errors import UsageError, check_number, check_output_dir
+from lerobot_cso.errors import UsageError, check_number, check_output_dir, interruptible
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
 from lerobot_cso.worlds.base import SimWorld
 from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
@@ -151,7 +152,7 @@ def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     root = cfg.dataset_root
     try:
         meta = LeRobotDatasetMetadata(cfg.repo_id, root=root)
-    except OSError as e:  # not on disk, and the Hub is unreachable or has no such dataset
+    except (OSError, httpx.HTTPError) as e:  # not on disk, and the Hub is unreachable or has no such dataset
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise UsageError(f"{root} holds no LeRobotDataset and {cfg.repo_id} could not be fetched: {reason}") from None
     for key, dims in (("observation.state", world.state_dims), ("action", (world.action_dim,))):
@@ -424,7 +425,7 @@ def demos_main(cfg: DemosConfig) -> None:
         episodes, frames = summary["total_episodes"], summary["total_frames"]
         print(f"{cfg.dataset_root}: {episodes} episodes, {frames} frames; usable for --tasks={cfg.tasks}")
         return
-    with output_lock(cfg.output_dir):
+    with output_lock(cfg.output_dir), interruptible(f"generating {cfg.output_dir}"):
         summary = generate_demos(cfg)
     print(f"{summary['output_dir']}: {summary['total_episodes']} episodes ({summary['new_episodes']} new)")
     for task, info in summary["tasks"].items():

@@ -28,7 +28,7 @@ from lerobot.configs import parser
 
 from lerobot_cso import rollout_stage
 from lerobot_cso.durable import output_lock, read_json
-from lerobot_cso.errors import UsageError
+from lerobot_cso.errors import UsageError, interruptible
 from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
 
 
@@ -255,7 +255,10 @@ def eval_main(cfg: EvalConfig) -> None:
     """Entry point of ``lerobot-cso eval``: the main process holds the output dir's lock while it evaluates."""
     from lerobot_cso import distributed
 
-    with output_lock(cfg.output_dir) if distributed.is_main() else nullcontext():
+    with (
+        output_lock(cfg.output_dir) if distributed.is_main() else nullcontext(),
+        interruptible(f"evaluating into {cfg.output_dir}"),
+    ):
         rows = evaluate(cfg)
     print(markdown_table(rows))
     print(f"\nwrote {cfg.output_dir}/eval.json, eval.csv, eval.png")

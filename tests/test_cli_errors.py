@@ -219,6 +219,16 @@ def test_ctrl_c_is_one_line_saying_where_it_stopped_and_how_to_resume(two_polici
         f"interrupted: lerobot-cso spo stopped in stage spo, writing {out}; the work it finished is saved, and the "
         "same command resumes from it"
     )
+    # An evaluation writes its output only at its end: the line said it resumed, and named no place.
+    out = tmp_path / "eval"
+    code, _, err = run_cli(
+        ["eval", f"--policy.path={two_policies[0]}", f"--tasks={','.join(TASKS)}", f"--output_dir={out}"], capsys
+    )
+    assert code == 130
+    assert err == (
+        f"interrupted: lerobot-cso eval stopped in evaluating into {out}; nothing is written before it ends, so the "
+        "same command starts it over"
+    )
 
 
 def test_a_value_of_the_wrong_type_is_one_error_line_and_exit_2(capsys, monkeypatch):
