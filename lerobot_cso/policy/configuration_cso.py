@@ -98,9 +98,12 @@ class CSOConfig(PreTrainedConfig):
 
     # Observation encoders. image_backbone: "resnet18" (QueST's stem + layer1 + layer2, the paper size) or "conv"
     # (a four-layer conv net that trains on two CPU cores, docs/cso-on-cpu.md); image_shift: random-shift
-    # augmentation in pixels while training (QueST's; 0 = off).
+    # augmentation in pixels while training (QueST's; 0 = off); image_resize: the side the camera images are resized
+    # to (antialiased) before the encoder, in training and inference alike, e.g. 64 for LeRobot's 480² MetaWorld
+    # frames (None = off: the images enter the encoder at the dataset's size).
     image_backbone: str = "resnet18"
     image_shift: int = 0
+    image_resize: int | None = None
     image_keypoints: int = 128
     image_embed_dim: int = 256
     state_embed_dim: int = 128
@@ -165,6 +168,8 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"image_backbone must be one of {IMAGE_BACKBONES}, got {self.image_backbone!r}")
         if self.image_shift < 0:
             raise ValueError(f"image_shift must be >= 0, got {self.image_shift}")
+        if self.image_resize is not None and self.image_resize < 1:
+            raise ValueError(f"image_resize must be >= 1 (or null: no resize), got {self.image_resize}")
         if self.inference_weights not in WEIGHT_FORMATS:
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:

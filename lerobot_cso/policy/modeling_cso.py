@@ -86,6 +86,7 @@ class CSOPolicy(PreTrainedPolicy):
             state_embed_dim=config.state_embed_dim,
             image_backbone=config.image_backbone,
             image_shift=config.image_shift,
+            image_resize=config.image_resize,
         )
         self.prior = SkillPrior(
             vocab_size=config.vocab_size,

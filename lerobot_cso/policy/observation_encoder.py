@@ -42,9 +42,17 @@ def random_shift(images: Tensor, pad: int) -> Tensor:
     return torch.stack([padded[i, :, y : y + h, x : x + w] for i, (y, x) in enumerate(zip(dy, dx, strict=True))])
 
 
+def resize_images(images: Tensor, size: int) -> Tensor:
+    """Images (N, C, H, W) resized to ``size``² (bilinear, antialiased: a 480² frame averages into each pixel of a
+    64² one rather than skipping most of it); unchanged when already that size."""
+    if images.shape[-2:] == (size, size):
+        return images
+    return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+
+
 class ImageEncoder(nn.Module):
-    """A conv backbone (``resnet18`` or ``conv``) → spatial-softmax keypoints → Linear; random shifts of
-    ``shift`` pixels while training."""
+    """A conv backbone (``resnet18`` or ``conv``) → spatial-softmax keypoints → Linear; images resized to
+    ``resize``² first when set; random shifts of ``shift`` pixels while training."""
 
     def __init__(
         self,
@@ -53,18 +61,24 @@ class ImageEncoder(nn.Module):
         embed_dim: int,
         backbone: str = "resnet18",
         shift: int = 0,
+        resize: int | None = None,
     ) -> None:
         super().__init__()
         if backbone not in IMAGE_BACKBONES:
             raise ValueError(f"image_backbone must be one of {', '.join(IMAGE_BACKBONES)}, got {backbone!r}")
         self.backbone = resnet18_stem() if backbone == "resnet18" else small_conv()
         self.shift = shift
+        self.resize = resize
+        if resize is not None:
+            image_shape = (image_shape[0], resize, resize)
         with torch.no_grad():
             feature_shape = self.backbone(torch.zeros(1, *image_shape)).shape[1:]
         self.keypoints = SpatialSoftmax(tuple(feature_shape), num_kp=keypoints)
         self.proj = nn.Linear(2 * keypoints, embed_dim)
 
     def forward(self, image: Tensor) -> Tensor:
+        if self.resize is not None:
+            image = resize_images(image, self.resize)
         if self.training and self.shift > 0:
             image = random_shift(image, self.shift)
         return self.proj(self.keypoints(self.backbone(image)).flatten(1))
@@ -83,6 +97,7 @@ class ContextEncoder(nn.Module):
         state_embed_dim: int,
         image_backbone: str = "resnet18",
         image_shift: int = 0,
+        image_resize: int | None = None,
     ) -> None:
         super().__init__()
         self.image_keys = [k for k, ft in input_features.items() if ft.type is FeatureType.VISUAL]
@@ -90,7 +105,12 @@ class ContextEncoder(nn.Module):
         self.images = nn.ModuleDict(
             {
                 _module_key(k): ImageEncoder(
-                    tuple(input_features[k].shape), image_keypoints, image_embed_dim, image_backbone, image_shift
+                    tuple(input_features[k].shape),
+                    image_keypoints,
+                    image_embed_dim,
+                    image_backbone,
+                    image_shift,
+                    image_resize,
                 )
                 for k in self.image_keys
             }
