@@ -150,10 +150,13 @@ def lerobot_train(args: list[str], threads: int | None) -> None:
 
 def run_tied(command: list[str], env: dict[str, str]) -> int:
     """Run ``command`` to its end and return its exit code; on Linux it is killed when this process dies, even by
-    ``kill -9``, so a rerun never finds an orphaned trainer still writing the same output dir."""
+    ``kill -9``, so a rerun never finds an orphaned trainer still writing the same output dir. A Ctrl-C (SIGINT to
+    the process group) is this process's to handle: the child ignores it and is killed as this process stops, so
+    the command ends with its own one line instead of the child's traceback."""
     parent = os.getpid()
 
     def die_with_parent() -> None:  # in the child, before exec
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # kept across exec: Python then installs no handler of its own
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
         if os.getppid() != parent:  # the parent died before the request was made
             os._exit(1)

@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -277,6 +278,30 @@ def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_pa
     while alive(child) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not alive(child)
+
+
+def test_ctrl_c_of_the_process_group_is_the_pipelines_to_report_not_its_trainers():
+    """Issue 35, item 7: Ctrl-C reaches the whole process group; the pipeline's ``lerobot-train`` child printed its
+    own KeyboardInterrupt traceback beside the pipeline's one line. The child now ignores it (it says so first:
+    whether it prints before it is killed depends on the machine's load) and is killed."""
+    child = "import signal, time; print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, flush=True); time.sleep(120)"
+    parent = (
+        "import sys\nfrom lerobot_cso.il import run_tied\ntry:\n"
+        f"    run_tied([sys.executable, '-c', {child!r}], {{}})\n"
+        "except KeyboardInterrupt:\n    print('the parent alone reports it', file=sys.stderr)\n    sys.exit(130)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", parent],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    ignores_ctrl_c = proc.stdout.readline()
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert ignores_ctrl_c == "True\n"
+    assert proc.returncode == 130 and err == "the parent alone reports it\n"
 
 
 def alive(pid: int) -> bool:
