@@ -30,7 +30,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 import torch
 from lerobot.envs.utils import preprocess_observation
-from lerobot.utils.constants import OBS_IMAGES
+from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
 from torch import Tensor
 
 from lerobot_cso.rollout.backend import ActiveSkill, Job, RolloutBackend, Trace
@@ -150,7 +150,8 @@ class SkillSampler:
         encoders' preprocessed inputs (CPU; only when ``keep_inputs``)."""
         raw: dict[str, Any] = {"agent_pos": obs["agent_pos"][rows]}
         if "pixels" in obs:
-            raw["pixels"] = {cam: image[rows] for cam, image in obs["pixels"].items()}
+            pixels = {cam: image[rows] for cam, image in obs["pixels"].items()}
+            raw["pixels"] = single_camera(pixels) if OBS_IMAGE in self.policy.config.input_features else pixels
         batch = preprocess_observation(raw)
         batch["task"] = [descriptions[r] for r in rows]
         batch = self.preprocessor(batch)
@@ -162,6 +163,17 @@ class SkillSampler:
         features = self.policy.config.input_features
         inputs = {k: v.cpu() for k, v in batch.items() if k in features} if self.keep_inputs else {}
         return context.float().cpu(), tokens.cpu(), logprobs.float().cpu(), chunks, inputs
+
+
+def single_camera(pixels: dict[str, np.ndarray]) -> np.ndarray:
+    """The frames of the one camera in ``pixels``, for a policy reading LeRobot's single-camera key
+    ``observation.image``: LeRobot's envs with one camera give it as a bare ``pixels`` array, which
+    ``preprocess_observation`` maps to that key (the world chose the camera: the one its LeRobot env renders)."""
+    if len(pixels) != 1:
+        raise ValueError(
+            f"a policy reading {OBS_IMAGE} reads one camera; the backend gives {', '.join(pixels) or 'none'}"
+        )
+    return next(iter(pixels.values()))
 
 
 class _PolicyController:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal, Protocol
 
 import draccus
+from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
 
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Frames
@@ -103,6 +104,7 @@ class WorldConfig(draccus.ChoiceRegistry, abc.ABC):
 
 
 def image_size_of(features: Mapping[str, Any], default: int) -> int:
-    """The side of the policy's (square) camera images, ``default`` when it reads none."""
-    sizes = [ft.shape[-1] for key, ft in features.items() if key.startswith("observation.images.")]
+    """The side of the policy's (square) camera images (``observation.images.<camera>``, or LeRobot's single-camera
+    ``observation.image``), ``default`` when it reads none."""
+    sizes = [ft.shape[-1] for key, ft in features.items() if key == OBS_IMAGE or key.startswith(f"{OBS_IMAGES}.")]
     return sizes[0] if sizes else default

@@ -11,3 +11,5 @@ IMAGE_SIZE = 128
 STATE_LAYOUTS = {"full": 39, "proprio": 8, "hand": 4}
 STATE_DIM = STATE_LAYOUTS["full"]  # hand xyz, gripper, 2 objects × (pos + quat), the previous frame's 18, goal xyz
 CAMERAS = ("corner", "corner2", "corner3", "corner4", "topview", "behindGripper", "gripperPOV")
+# The camera of LeRobot's MetaWorld env, its ``observation.image`` (480² in its datasets, e.g. lerobot/metaworld_mt50).
+LEROBOT_CAMERA = "corner2"

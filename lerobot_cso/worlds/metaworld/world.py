@@ -1,7 +1,8 @@
 """The MetaWorld world (``--world.type=metaworld``, the default): seeded initial states, a pool of envs.
 
-Its envs give a policy what it reads (:func:`policy_pool`): the state layout its ``observation.state`` size names,
-its cameras at its image size.
+Its envs give a policy what it reads (:func:`policy_pool`, :func:`env_inputs`): the state layout its
+``observation.state`` size names, its cameras at its image size, LeRobot's own MetaWorld format included
+(``observation.image``: LeRobot's ``corner2`` view; ``observation.state``: the 4-d hand state).
 """
 
 from __future__ import annotations
@@ -12,11 +13,21 @@ from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar
 
+from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES, OBS_STATE
+
 from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Frames, open_pool
 from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, image_size_of
-from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.constants import (
+    ACTION_DIM,
+    CAMERAS,
+    FPS,
+    HORIZON,
+    IMAGE_SIZE,
+    LEROBOT_CAMERA,
+    STATE_LAYOUTS,
+)
 from lerobot_cso.worlds.metaworld.tasks import check_task, resolve_tasks, task_description
 
 
@@ -46,15 +57,25 @@ def policy_pool(
     frames: Frames = "all",
     **kwargs: Any,
 ) -> RolloutBackend:
-    """A pool whose envs give a policy with these input features what it reads: the state layout of its
-    ``observation.state`` size (the full state without one), its cameras at its image size."""
+    """A pool whose envs give a policy with these input features what it reads (:func:`env_inputs`)."""
+    cameras, size, state = env_inputs(features)
+    return pool(num_envs, cameras, size, max_steps, state, vectorization=vectorization, frames=frames, **kwargs)
+
+
+def env_inputs(features: Mapping[str, Any]) -> tuple[tuple[str, ...], int, str]:
+    """The cameras, image size and state layout of envs that give a policy with these input features what it reads:
+    the cameras of its ``observation.images.<camera>`` inputs, or for LeRobot's own MetaWorld format
+    (``observation.image``) the camera LeRobot's MetaWorld env renders, flipped as it flips it; its image size;
+    the state layout of its ``observation.state`` size (the full state without one)."""
     from lerobot_cso.worlds.metaworld.env import state_layout
 
-    prefix = "observation.images."
-    cameras = tuple(key.removeprefix(prefix) for key in features if key.startswith(prefix))
-    state = state_layout(features["observation.state"].shape[-1]) if "observation.state" in features else "full"
-    size = image_size_of(features, IMAGE_SIZE)
-    return pool(num_envs, cameras, size, max_steps, state, vectorization=vectorization, frames=frames, **kwargs)
+    cameras = tuple(
+        LEROBOT_CAMERA if key == OBS_IMAGE else key.removeprefix(f"{OBS_IMAGES}.")
+        for key in features
+        if key == OBS_IMAGE or key.startswith(f"{OBS_IMAGES}.")
+    )
+    state = state_layout(features[OBS_STATE].shape[-1]) if OBS_STATE in features else "full"
+    return cameras, image_size_of(features, IMAGE_SIZE), state
 
 
 class MetaWorld:
