@@ -1,0 +1,137 @@
+"""LeRobot's own MetaWorld format as a dataset (issue 33, item 1): a 480² ``corner2`` ``observation.image`` stored as
+video plus the 4-d hand ``observation.state``, trained with the real ``lerobot-train`` (the frames resized inside the
+policy) and rolled out in our MetaWorld world, whose env gives it LeRobot's view of the same camera."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from safetensors.torch import load_file
+from tiny_data import TINY_POLICY_ARGS
+
+from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.rollout.backend import Job
+from lerobot_cso.rollout.engine import RolloutEngine
+from lerobot_cso.worlds.base import Rollouts
+from lerobot_cso.worlds.metaworld.constants import FPS, LEROBOT_CAMERA
+from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv, select_state
+from lerobot_cso.worlds.metaworld.expert import ExpertController
+from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.metaworld.world import MetaWorld, env_inputs
+
+BIN = Path(sys.executable).parent
+ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+TASK = "reach-v3"
+SIZE = 480  # LeRobot's MetaWorld frames
+RESIZE = 32  # what the tiny policy's encoder reads
+
+
+def make_lerobot_metaworld_dataset(root: Path, episodes: int = 2, length: int = 12) -> LeRobotDataset:
+    """Scripted-expert episodes of ``TASK`` written in LeRobot's MetaWorld format by LeRobot's dataset writer."""
+    features = {
+        "observation.image": {"dtype": "video", "shape": (SIZE, SIZE, 3), "names": ["height", "width", "channels"]},
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (4,), "names": None},
+    }
+    ds = LeRobotDataset.create("local/lerobot_metaworld", FPS, features, root=root, robot_type="sawyer")
+    env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=SIZE)  # the full state: the expert reads it
+    expert = ExpertController(1, noise_std=0.1)
+    for seed in range(episodes):
+        obs, _ = env.reset(seed=seed)
+        expert.start(0, Job(TASK, seed))
+        for _ in range(length):
+            action = expert.act({"agent_pos": obs["agent_pos"][None]}, np.ones(1, dtype=bool))[0]
+            frame = {
+                "observation.image": obs["pixels"][LEROBOT_CAMERA],
+                "observation.state": select_state(obs["agent_pos"], "hand"),
+                "action": action,
+                "task": task_description(TASK),
+            }
+            ds.add_frame(frame)
+            obs, *_ = env.step(action)
+        ds.save_episode()
+    env.close()
+    ds.finalize()
+    return ds
+
+
+def test_our_corner2_is_lerobots_view():
+    """The same scene through LeRobot's MetaWorld env and ours: our ``corner2`` frame is LeRobot's (its framing and
+    its 180° flip; ours renders without shadows, hence a small difference), not its unflipped render."""
+    from lerobot.envs.metaworld import MetaworldEnv
+
+    theirs = MetaworldEnv(TASK, obs_type="pixels_agent_pos")
+    their_obs, _ = theirs.reset(seed=3)
+    ours = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=SIZE, state="hand")
+    our_obs, _ = ours.reset(seed=3)
+    np.testing.assert_allclose(our_obs["agent_pos"], their_obs["agent_pos"], atol=1e-6)  # the same initial state
+    mine, lerobot = our_obs["pixels"][LEROBOT_CAMERA].astype(int), their_obs["pixels"].astype(int)
+    assert mine.shape == lerobot.shape == (SIZE, SIZE, 3)
+    same, turned = np.abs(mine - lerobot).mean(), np.abs(mine - lerobot[::-1, ::-1]).mean()
+    assert same < 15 and 3 * same < turned, (same, turned)
+    ours.close()
+    theirs.close()
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_path):
+    data = tmp_path / "data"
+    ds = make_lerobot_metaworld_dataset(data)
+    assert ds.meta.video_keys == ["observation.image"] and ds.meta.fps == 80
+
+    out = tmp_path / "train"
+    cmd = [
+        str(BIN / "lerobot-train"),
+        "--policy.type=cso",
+        "--dataset.repo_id=local/lerobot_metaworld",
+        f"--dataset.root={data}",
+        "--dataset.video_backend=pyav",
+        f"--output_dir={out}",
+        "--steps=4",
+        "--save_freq=4",
+        "--batch_size=4",
+        "--num_workers=0",
+        "--log_freq=1",
+        "--policy.n_autoencoder_steps=2",
+        "--policy.image_backbone=conv",
+        f"--policy.image_resize={RESIZE}",
+        *TINY_POLICY_ARGS,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "step:4 " in proc.stdout + proc.stderr and "nll:" in proc.stdout + proc.stderr  # the prior trained too
+    model = out / "checkpoints" / "last" / "pretrained_model"
+    config = json.loads((model / "config.json").read_text())
+    features = {k: v["shape"] for k, v in config["input_features"].items()}
+    assert features == {"observation.image": [3, SIZE, SIZE], "observation.state": [4]}
+    assert config["image_resize"] == RESIZE
+    # The encoder trained on the resized frames: its keypoint grid is the conv net's (stride 4) map of a 32² image.
+    grid = load_file(model / "model.safetensors")["encoders.images.observation__image.keypoints.pos_grid"]
+    assert grid.shape == ((RESIZE // 4) ** 2, 2)
+
+    # Our world gives the policy what it reads: LeRobot's corner2 view at 480², the 4-d hand state.
+    policy, pre, post = load_policy(model)
+    assert env_inputs(policy.config.input_features) == ((LEROBOT_CAMERA,), SIZE, "hand")
+    encoder = policy.encoders.images["observation__image"]
+    read, encoded = [], []
+    encoder.register_forward_pre_hook(lambda _, args: read.append(tuple(args[0].shape)))
+    encoder.backbone.register_forward_pre_hook(lambda _, args: encoded.append(tuple(args[0].shape)))
+    world = MetaWorld()
+    rollouts = Rollouts(2, "sync", 16, 16, "decisions", (), policy.config.input_features)
+    with RolloutEngine(policy, pre, post, world.backend(rollouts), world.task_description) as engine:
+        result = engine.rollout([(TASK, s) for s in world.eval_states(TASK, 0, 2)], keep_frames=[0])
+    assert len(result.episodes) == 2 and result.decisions >= 2
+    assert read and set(read) == {(2, 3, SIZE, SIZE)}  # both envs' frames at the dataset's size ...
+    assert set(encoded) == {(2, 3, RESIZE, RESIZE)}  # ... resized before the encoder's conv net
+    first = result.episodes[0]
+    assert first.states.shape[-1] == 4 and first.images[LEROBOT_CAMERA].shape[1:] == (SIZE, SIZE, 3)
+    env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=SIZE, state="hand")
+    np.testing.assert_array_equal(
+        first.images[LEROBOT_CAMERA][0].numpy(), env.reset(seed=first.init_seed)[0]["pixels"][LEROBOT_CAMERA]
+    )
+    env.close()
