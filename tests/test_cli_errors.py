@@ -407,7 +407,7 @@ def test_an_empty_journal_takes_the_settings_of_a_corrected_command(tmp_path):
 
 def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming_it(tmp_path, capsys, monkeypatch):
     """Issue 35, item 3: a missing, unreadable or malformed ``--config_path``, a damaged staged demo episode
-    (``<output_dir>.partial/``) and a damaged SPO ``log.jsonl`` each gave a traceback."""
+    (``<output_dir>.partial/``), SPO ``log.jsonl`` and R-SFT ``collection.json`` each gave a traceback."""
     monkeypatch.setattr(sys, "argv", list(sys.argv))
     broken, listing = tmp_path / "broken.yaml", tmp_path / "list.yaml"
     broken.write_text("tasks: [reach-v3\n  x: : :\n")
@@ -435,6 +435,12 @@ def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming
     log.write_text('{"iteration": 1}\n{"iteration": 2, "succ')
     with pytest.raises(UsageError, match=f"^{log} is damaged"):
         SPOStage(rollout_config(SPOConfig, output_dir=log.parent)).history()
+    report = tmp_path / "rsft" / "collection.json"  # read when the fine-tuned policy exists
+    (report.parent / "pretrained_model").mkdir(parents=True)
+    (report.parent / "pretrained_model" / "config.json").write_text("{}")
+    report.write_text('{"tasks": {"reach-v3": ')
+    with pytest.raises(UsageError, match=f"^{report} is damaged"):
+        run_rsft(rollout_config(RSFTConfig, output_dir=report.parent))
 
 
 def test_demos_of_a_world_without_an_expert_names_this_commands_flags():

@@ -26,7 +26,6 @@ way ``lerobot-train`` trains it (the policy's AdamW and cosine presets at R-SFT'
 observation encoders are frozen and ``<output_dir>/pretrained_model`` is saved with ``freeze_encoders: true``.
 """
 
-import json
 import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -45,7 +44,14 @@ from tqdm import tqdm
 from lerobot_cso import distributed, rollout_stage, seeds
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
 from lerobot_cso.cso.objectives import group_advantages
-from lerobot_cso.durable import EpisodeJournal, ResumableState, replace_dir, restore_interrupted_replace, write_json
+from lerobot_cso.durable import (
+    EpisodeJournal,
+    ResumableState,
+    read_json,
+    replace_dir,
+    restore_interrupted_replace,
+    write_json,
+)
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.frames import in_memory
 from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY, SKILL_TOKENS_KEY
@@ -290,10 +296,10 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     shutil.rmtree(work, ignore_errors=True)
     files = [p for t in tasks for p in journal.episode_files(t)]
     world = cfg.rollout_world()
-    with np.load(files[0]) as first:
-        cameras = sorted(k.removeprefix("image_") for k in first.files if k.startswith("image_"))
-        image_shapes = {cam: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
-        dims = first["states"].shape[-1], first["actions"].shape[-1]
+    first = EpisodeJournal.load(files[0])
+    cameras = sorted(k.removeprefix("image_") for k in first if k.startswith("image_"))
+    image_shapes = {cam: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
+    dims = first["states"].shape[-1], first["actions"].shape[-1]
     features = buffer_features(*dims, n_tokens, image_shapes)
     ds = LeRobotDataset.create(
         cfg.repo_id,
@@ -308,8 +314,7 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     for path in tqdm(files, desc="writing R-SFT buffer", leave=False):
         task = path.parent.name
         seed, attempt = (int(x) for x in path.stem.split("_"))
-        with np.load(path) as archive:
-            ep = dict(archive)  # each array read once: an NpzFile decompresses an array on every ``ep[key]``
+        ep = EpisodeJournal.load(path)  # each array read once: an NpzFile decompresses an array on every access
         steps = ep["decision_steps"]
         skill = np.searchsorted(steps, np.arange(len(ep["actions"])), side="right") - 1
         for t in range(len(ep["actions"])):
@@ -509,7 +514,7 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] | None =
         check_demos(cfg)  # before the collection, not after it
     if (cfg.output_dir / "pretrained_model" / "config.json").is_file():
         print(f"{cfg.output_dir / 'pretrained_model'} exists: R-SFT already complete")
-        return json.loads((cfg.output_dir / "collection.json").read_text())
+        return read_json(cfg.output_dir / "collection.json")
     main = distributed.is_main()
     if main:  # creates the journal (or refuses one made with other settings) before any process opens it
         Journal(cfg.output_dir / "journal", cfg.spec())
