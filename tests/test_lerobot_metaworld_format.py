@@ -78,7 +78,7 @@ def test_our_corner2_is_lerobots_view():
     theirs.close()
 
 
-@pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.slow
 def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_path):
     data = tmp_path / "data"
     ds = make_lerobot_metaworld_dataset(data)
