@@ -118,9 +118,12 @@ def test_crash_mid_collection_then_rerun_loses_and_duplicates_nothing(il_policy,
 def test_a_journal_with_other_settings_is_refused(il_policy, tmp_path):
     assert "stop_state_at_cap" not in make_cfg(il_policy, tmp_path).spec()  # as journals made before it existed
     assert make_cfg(il_policy, tmp_path, stop_state_at_cap=True).spec()["stop_state_at_cap"] is True
+    other = make_cfg(il_policy, tmp_path, sampling=Sampling(temperature=0.7)).spec()
     rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
+    rsft.Journal(tmp_path / "journal", other)  # nothing collected yet: a corrected command takes the journal over
+    rsft.Journal(tmp_path / "journal", other).save_state("reach-v3", S, attempts=3, successes=1)
     with pytest.raises(UsageError, match="other settings"):
-        rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path, sampling=Sampling(temperature=0.7)).spec())
+        rsft.Journal(tmp_path / "journal", make_cfg(il_policy, tmp_path).spec())
 
 
 def test_a_task_never_solved_is_a_clear_error(il_policy, tmp_path):
