@@ -15,6 +15,7 @@ from safetensors.torch import load_file
 from tiny_data import TINY_POLICY_ARGS
 
 from lerobot_cso.checkpoints import load_policy
+from lerobot_cso.policy import CSOConfig
 from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.worlds.base import Rollouts
@@ -58,6 +59,17 @@ def make_lerobot_metaworld_dataset(root: Path, episodes: int = 2, length: int = 
     env.close()
     ds.finalize()
     return ds
+
+
+def test_image_resize_is_off_in_config_files_without_it(tmp_path):
+    """A config.json written before ``image_resize`` existed loads with the resize off; a size below 1 is refused."""
+    CSOConfig(device="cpu")._save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    del saved["image_resize"]
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    assert CSOConfig.from_pretrained(tmp_path).image_resize is None
+    with pytest.raises(ValueError, match="image_resize must be >= 1"):
+        CSOConfig(image_resize=0)
 
 
 def test_our_corner2_is_lerobots_view():
