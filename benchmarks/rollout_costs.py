@@ -32,19 +32,17 @@ from lerobot.envs.utils import preprocess_observation
 from lerobot_cso import seeds
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.durable import write_atomic
-from lerobot_cso.rollout.engine import RolloutEngine, cameras_of
+from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.sampling import Sampling
-from lerobot_cso.worlds.base import image_size_of
-from lerobot_cso.worlds.metaworld.constants import IMAGE_SIZE
-from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv, state_layout
+from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv
 from lerobot_cso.worlds.metaworld.tasks import task_description
-from lerobot_cso.worlds.metaworld.world import policy_pool
+from lerobot_cso.worlds.metaworld.world import env_inputs, policy_pool
 
 
 def policy_env(features: dict[str, Any], task: str) -> CSOMetaWorldEnv:
     """An env giving what a policy with these input features reads (as :func:`policy_pool` builds them)."""
-    state = state_layout(features["observation.state"].shape[-1])
-    return CSOMetaWorldEnv(task, cameras_of(features), image_size_of(features, IMAGE_SIZE), state=state)
+    cameras, size, state = env_inputs(features)
+    return CSOMetaWorldEnv(task, cameras, size, state=state)
 
 
 def seconds_per_call(fn: Any, n: int) -> float:
@@ -59,11 +57,11 @@ def sim_and_render(features: dict[str, Any], tasks: list[str], steps: int) -> di
     rng = np.random.default_rng(0)
     sim, render = [], []
     for task in tasks:
-        bare = CSOMetaWorldEnv(task, state=state_layout(features["observation.state"].shape[-1]))
+        bare = CSOMetaWorldEnv(task, state=env_inputs(features)[2])
         bare.reset(seed=seeds.train_seeds(1)[0])
         sim.append(seconds_per_call(lambda env=bare: env.step(rng.uniform(-1, 1, 4).astype(np.float32)), steps))
         bare.close()
-        if cameras_of(features):
+        if env_inputs(features)[0]:
             env = policy_env(features, task)
             env.reset(seed=seeds.train_seeds(1)[0])  # renders the first frame: the renderer is built
             render.append(len(env.cameras) * seconds_per_call(env.render, steps // 4))
