@@ -343,8 +343,8 @@ def test_the_twin_operator_places_each_state_from_its_seed_and_labels_the_episod
         with pytest.raises(operator.OperatorQuit, match="did not reconnect after the fault in state 3, attempt 2"):
             twin.wait_for_recovery(episode)
         publishing.stop()  # the emulator stopped
-        time.sleep(0.6)
-        with pytest.raises(TimeoutError, match=r"no PiPER twin state for .* s \(limit 0.5 s\): the emulator stopped"):
+        time.sleep(1.1)
+        with pytest.raises(TimeoutError, match=r"no PiPER twin state for .* s \(limit 1.0 s\): the emulator stopped"):
             twin.verdict(episode, {}, tick=3)
     finally:
         twin.close()

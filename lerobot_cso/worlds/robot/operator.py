@@ -43,7 +43,7 @@ OPERATORS: tuple[str, ...] = ("keyboard", "scripted", "twin")
 ON_FAULT: tuple[str, ...] = ("stop", "wait")
 POLL_S = 0.05  # how often a waiting operator is polled
 TWIN_WAIT_S = 5.0  # how long the twin operator waits for the twin's first state and for a placement
-TWIN_MAX_AGE_S = 0.5  # a twin state older than this: the emulator stopped
+TWIN_MAX_AGE_S = 1.0  # a twin state older than this: the emulator stopped
 TWIN_SETTLE_S = 0.3  # the twin's time from placing the objects to the start (they come to rest, the arm settles)
 
 
