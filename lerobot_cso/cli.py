@@ -61,14 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     if name not in SUBCOMMANDS:
         print(f"error: unknown subcommand '{name}'; choose one of: {', '.join(SUBCOMMANDS)}", file=sys.stderr)
         return 2
-    from lerobot.utils.import_utils import register_third_party_plugins
-
     if name in ROLLOUT_STAGES:
         rest = robot_world_args(rest)
     sys.argv = [f"lerobot-cso {name}", *rest]  # parser.wrap() reads sys.argv
-    register_third_party_plugins()
     try:
         check_config_path(rest)
+        # Inside the try: the imports take seconds (minutes on a loaded machine), and a Ctrl-C may land in them.
+        from lerobot.utils.import_utils import register_third_party_plugins
+
+        register_third_party_plugins()
         with parse_errors_as_usage_errors():
             _command(name)()
     except UsageError as e:
