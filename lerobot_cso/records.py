@@ -2,8 +2,9 @@
 
 A record (JSON) holds the spec a stage's output was made with, whether it completed, when, and its summary.
 :func:`run_recorded` reads it before the stage does anything: the same spec and a complete output is skipped;
-a spec that only grows in one of the stage's ``grows`` keys continues; any other difference over an existing
-output is refused with one line naming every changed setting (``redo_on_change`` stages are simply redone).
+a spec that only grows in one of the stage's ``grows`` keys continues; any other difference over a complete output or
+one holding work (:func:`holds_work`) is refused with one line naming every changed setting (``redo_on_change``
+stages are simply redone).
 
 The pipeline keeps one record per stage in ``<output_dir>/stages/``, its specs naming the upstream stage's run;
 a stage run by its own command (``lerobot-cso rsft|spo``, :func:`run_alone`) keeps its record in its output dir,
@@ -36,6 +37,13 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def holds_work(output: Path, record_path: Path) -> bool:
+    """Whether ``output`` holds anything a run made besides the stage's record and the ``spec.json`` of journals
+    that hold no episode yet: a run that failed before any work (a robot that did not connect) binds no setting."""
+    bookkeeping = {record_path, *output.rglob("spec.json")}
+    return any(p.is_file() and p not in bookkeeping for p in output.rglob("*"))
+
+
 def run_recorded(
     stage: Stage, record_path: Path, spec: dict[str, Any], label: str, elsewhere: str, write: bool = True
 ) -> tuple[Any, float]:
@@ -46,7 +54,8 @@ def run_recorded(
     current = without_added_settings(spec)
     recorded = None if record is None else without_added_settings(record["spec"])
     same = recorded == current
-    if record is not None and not same and output.exists() and not stage.redo_on_change:
+    bound = record is not None and (record["complete"] or holds_work(output, record_path))
+    if bound and not same and not stage.redo_on_change:
         old, new = flatten(recorded), flatten(current)
         changed = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
         listed = ", ".join(f"{k}: {old.get(k)} → {new.get(k)}" for k in changed)

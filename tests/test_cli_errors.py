@@ -27,7 +27,7 @@ from lerobot.utils import import_utils
 from lerobot.utils.import_utils import get_safe_default_video_backend
 
 import lerobot_policy_cso
-from lerobot_cso import cli, rollout_stage
+from lerobot_cso import cli, records, rollout_stage
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig
@@ -413,6 +413,45 @@ def test_an_empty_journal_takes_the_settings_of_a_corrected_command(tmp_path):
     journal.save_episode("task", "0000000_001", {"success": np.bool_(True)})
     with pytest.raises(UsageError, match=f"^{root} holds a robot journal made with other settings"):
         EpisodeJournal(root, {"fps": 10}, what="a robot journal")
+
+
+class FailingStage:
+    """A checkpoint stage whose run opens its journal, saves ``episodes`` episodes, then fails (a robot that did
+    not connect saves none)."""
+
+    name, redo_on_change, grows = "rsft", False, ()
+
+    def __init__(self, out: Path, episodes: int) -> None:
+        self.out, self.episodes = out, episodes
+
+    def output(self) -> Path:
+        return self.out
+
+    def complete(self) -> bool:
+        return False
+
+    def run(self) -> None:
+        journal = EpisodeJournal(self.out / "robot_journal", {"fps": 30})
+        for i in range(self.episodes):
+            journal.save_episode("task", f"{i:07d}_001", {"success": np.bool_(True)})
+        raise UsageError("robot piper_follower did not connect")
+
+
+@pytest.mark.parametrize("episodes", [0, 1])
+def test_a_stage_that_failed_before_any_work_binds_no_setting(tmp_path, episodes):
+    """Issue 35, item 8: a standalone robot stage whose robot did not connect left ``stage.json``
+    (``complete: false``), and its record refused a corrected command that changed a setting; once an episode
+    exists, a changed setting is still refused."""
+    out = tmp_path / "rsft"
+    with pytest.raises(UsageError, match="did not connect"):
+        records.run_recorded(FailingStage(out, episodes), out / "stage.json", {"n": 1}, "rsft", "delete it")
+    if episodes:
+        with pytest.raises(UsageError, match=r"was made with other settings or inputs \(n: 1 → 2\)"):
+            records.run_recorded(FailingStage(out, 0), out / "stage.json", {"n": 2}, "rsft", "delete it")
+    else:
+        with pytest.raises(UsageError, match="did not connect"):
+            records.run_recorded(FailingStage(out, 0), out / "stage.json", {"n": 2}, "rsft", "delete it")
+        assert json.loads((out / "stage.json").read_text()) == {"spec": {"n": 2}, "complete": False}
 
 
 def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming_it(tmp_path, capsys, monkeypatch):

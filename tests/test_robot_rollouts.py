@@ -362,6 +362,11 @@ def bad_input(arm, il_policy, other_policies, home, tmp_path_factory) -> dict[st
             *robot_args(arm)[1:],
             camera_args(ops / "no_cam"),
         ],
+        "motion mode from a missing dataset": [
+            f"--policy.path={il_policy}",
+            "--robot.type=piper_follower",
+            f"--robot.motion_mode_from={out / 'no_such_dataset'}",
+        ],
         "arm not on the bus": [
             f"--policy.path={il_policy}",
             *piper,
@@ -396,6 +401,11 @@ def bad_input(arm, il_policy, other_policies, home, tmp_path_factory) -> dict[st
             "camera that does not open",
             1,
             "error: robot piper_follower did not connect: ConnectionError: Failed to open OpenCVCamera(",
+        ),
+        (
+            "motion mode from a missing dataset",
+            2,
+            "error: robot piper_follower cannot be made: no PiPER motion mode recorded for ",
         ),
         ("arm not on the bus", 1, "error: robot piper_follower did not connect: PiperConnectionError: no PiPER heard"),
     ],

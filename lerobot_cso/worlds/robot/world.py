@@ -41,11 +41,13 @@ def check_policy_fits(robot_config: RobotConfig, policy: PreTrainedConfig) -> No
     """Raise ``UsageError`` unless the policy reads exactly what the robot observes and commands what it takes."""
     quiet = logging.root.manager.disable
     logging.disable(logging.WARNING)  # what a robot logs when built is logged again by the one that connects
+    name = robot_config.type
     try:
         robot = make_robot_from_config(robot_config)  # builds the object only: nothing is connected
+    except Exception as exc:  # a setting the plugin refuses (e.g. --robot.motion_mode_from=<missing>): one line
+        raise UsageError(f"robot {name} cannot be made: {exc.__cause__ or exc}") from exc
     finally:
         logging.disable(quiet)
-    name = robot_config.type
     inputs, outputs = policy.input_features, policy.output_features
     states, actions, cameras = state_keys(robot), list(robot.action_features), camera_shapes(robot)
     if OBS_STATE in inputs and tuple(inputs[OBS_STATE].shape) != (len(states),):
