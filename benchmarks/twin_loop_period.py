@@ -1,0 +1,190 @@
+"""The 30 Hz loop with a camera policy on the PiPER's physics twin (issue 36): missed ticks and p99 tick time.
+
+Saves an untrained cso policy with the project's camera architecture (the ``il.policy`` block of
+configs/metaworld_vision.yaml: the four-layer conv encoder, its keypoints and embedding, the small prior; images at
+its ``demos.image_size``) reading the twin's camera(s) plus the PiPER's 7-D state, 7-D action, saved with its
+processors. Starts ``piper-emulator --physics --scene=<scene>`` on private udp_multicast channels (CAN and the
+twin's world state), runs ``lerobot-rollout --strategy.type=base --robot.cameras=<piper_twin views>`` against it once
+per variant (synchronous decode, and the background decode started ``--lead`` ticks before the queue runs dry),
+and measures the loop period from the kernel receive times of the joint commands on the bus, as
+benchmarks/rollout_loop_period.py does for the state policy on the kinematic firmware. A period over 1.1 control
+periods (36.7 ms at 30 Hz) is a missed tick.
+
+``lerobot-rollout`` runs as itself (LeRobot's ``main``) behind a few lines that time each camera read (the twin's
+camera renders in the rollout process, on the loop's thread) and each ``select_action`` (two clock reads per
+call), written to a file at exit. Run:
+    OMP_NUM_THREADS=1 ./run.sh python benchmarks/twin_loop_period.py [--duration 60] [--lead 3] [--skip 5]
+        [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import make_pre_post_processors
+from rollout_loop_period import report
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "hardware"))
+from piper_processes import BIN, ChannelRecorder, cli_env, explain, start_emulator  # noqa: E402
+from piper_rig import unique_udp_channel  # noqa: E402
+
+from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: E402
+
+TASK = "press the button"
+CAMERA = "{type: piper_twin, view: %s, width: %d, height: %d, group: %s, port: %d, max_age_s: 1.0}"
+TIMINGS_ENV = "TWIN_LOOP_TIMINGS"
+# lerobot-rollout's console script, with each camera read and each select_action timed: (wall start s, ms).
+ROLLOUT = f"""
+import atexit, json, os, sys, time
+from lerobot_robot_piper.piper_twin_camera import PiperTwinCamera
+from lerobot_cso.policy import CSOPolicy
+from lerobot.scripts.lerobot_rollout import main
+timings = {{}}
+def timed(key_of, original):
+    def wrapper(self, *args, **kwargs):
+        wall, start = time.time(), time.perf_counter()
+        try:
+            return original(self, *args, **kwargs)
+        finally:
+            timings.setdefault(key_of(self), []).append((wall, (time.perf_counter() - start) * 1e3))
+    return wrapper
+PiperTwinCamera.read = timed(lambda cam: "camera " + cam.config.view, PiperTwinCamera.read)
+CSOPolicy.select_action = timed(lambda policy: "select_action", CSOPolicy.select_action)
+atexit.register(lambda: open(os.environ["{TIMINGS_ENV}"], "w").write(json.dumps(timings)))
+sys.argv[0] = "lerobot-rollout"
+sys.exit(main())
+"""
+
+
+def vision_settings(config: Path) -> tuple[dict, int]:
+    """The camera policy's settings (without the device) and the image side of a config like metaworld_vision."""
+    with open(config) as f:
+        cfg = yaml.safe_load(f)
+    policy = {k: v for k, v in cfg["il"]["policy"].items() if k != "device"}
+    return policy, int(cfg["demos"]["image_size"])
+
+
+def save_camera_policy(path: Path, cameras: list[str], side: int, settings: dict, lead: int, weights: str) -> Path:
+    """Untrained cso camera policy for the PiPER (images of ``cameras``, state and action 7-D), with processors."""
+    torch.manual_seed(0)
+    images = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, side, side)) for c in cameras}
+    config = CSOConfig(
+        device="cpu",
+        push_to_hub=False,
+        n_autoencoder_steps=0,
+        tasks=[TASK],
+        async_decode_lead=lead,
+        inference_weights=weights,
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,)), **images},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        **settings,
+    )
+    # Actions stay within ±0.1 rad of home (gripper 0 … 2 cm): the untrained policy only jitters.
+    stats = {
+        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
+        "action": {"min": torch.tensor([-0.1] * 6 + [0.0]), "max": torch.tensor([0.1] * 6 + [0.02])},
+    }
+    stats |= {key: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)} for key in images}
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    CSOPolicy(config).save_pretrained(path)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    return path
+
+
+def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int) -> tuple[np.ndarray, dict]:
+    """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, and the
+    timed calls after the same instant (name -> ms)."""
+    group, port = unique_udp_channel()
+    state_group, state_port = unique_udp_channel()
+    physics = ["--physics", f"--scene={args.scene}", "--scene-seed=3"]
+    twin = start_emulator(group, port, *physics, f"--state-group={state_group}", f"--state-port={state_port}")
+    cams = ", ".join(f"{c}: {CAMERA % (c, side, side, state_group, state_port)}" for c in args.cameras)
+    recorder = ChannelRecorder(group, port)
+    timings = home / "timings.json"
+    rollout = [
+        "--strategy.type=base",
+        f"--policy.path={checkpoint}",
+        "--robot.type=piper_follower",
+        *twin.args("robot"),
+        "--robot.feedback_timeout_s=1.0",  # the most a late emulator is allowed (it shares the CPUs)
+        "--robot.enable_timeout_s=5",
+        f"--robot.cameras={{{cams}}}",
+        f"--task={TASK}",
+        f"--duration={args.duration}",
+        f"--fps={args.fps}",
+        "--device=cpu",
+        "--return_to_initial_position=false",
+    ]
+    try:
+        out = subprocess.run(
+            [str(BIN / "python"), "-c", ROLLOUT, *rollout],
+            capture_output=True,
+            text=True,
+            timeout=args.duration + 240,
+            env=cli_env(home) | {TIMINGS_ENV: str(timings)},
+            cwd=home,
+        )
+    finally:
+        recorder.stop()
+        twin.stop()
+    if out.returncode != 0:
+        raise RuntimeError(explain(out))
+    times = np.array([c.time_s for c in recorder.commands.joints])
+    start = times[0] + args.skip  # the first commands: connection, the first decode
+    timed = json.loads(timings.read_text()) if timings.exists() else {}
+    calls = {name: np.array([ms for wall, ms in calls if wall >= start]) for name, calls in timed.items()}
+    return np.diff(times[times >= start]) * 1000, calls
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0)
+    parser.add_argument("--fps", type=int, default=30)
+    parser.add_argument("--lead", type=int, default=3)
+    parser.add_argument("--skip", type=float, default=1.0, help="seconds dropped after the first joint command")
+    parser.add_argument("--weights", default="float32")
+    parser.add_argument("--cameras", type=lambda s: s.split(","), default=["front"], help="e.g. front,wrist")
+    parser.add_argument("--scene", default="press_button", choices=("press_button", "cube_in_bowl"))
+    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "metaworld_vision.yaml")
+    args = parser.parse_args()
+    settings, side = vision_settings(args.config)
+    limit_ms = 1.1 * 1000 / args.fps
+    print(f"# command: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '')} python {shlex.join(sys.argv)}")
+    views = ",".join(args.cameras)
+    print(f"# policy: {args.config.name} il.policy, cameras {views} at {side}x{side}, scene {args.scene}")
+    with open("/proc/loadavg") as f:
+        print(f"# load average before: {f.read().strip()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        home = Path(tmp)
+        for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
+            begin = time.monotonic()
+            path = home / f"policy_lead{lead}"
+            checkpoint = save_camera_policy(path, args.cameras, side, settings, lead, args.weights)
+            periods, calls = loop_run(checkpoint, home, args, side)
+            report(f"{name} ({args.weights})", periods, limit_ms)
+            for call, ms in sorted(calls.items()):
+                if len(ms):
+                    print(
+                        f"{call}: {len(ms)} calls, median {np.median(ms):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms,"
+                        f" max {ms.max():.2f} ms"
+                    )
+            with open("/proc/loadavg") as f:
+                print(f"# load average after: {f.read().strip()}; variant wall time {time.monotonic() - begin:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
