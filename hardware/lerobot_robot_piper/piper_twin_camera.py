@@ -1,12 +1,14 @@
 """LeRobot camera ``piper_twin``: the PiPER twin's front or wrist view, rendered from its published state.
 
-``piper-emulator --physics`` publishes the world state (``piper_twin.state_channel``); this camera
-receives it and renders the view in this process (``piper_twin.renderer``), on the thread that reads it.
-Needs the ``twin`` extra (``mujoco``, ``piper-control``).
+``piper-emulator --physics`` publishes the world state (``piper_twin.state_channel``); this camera receives it
+and renders the view in this process (``piper_twin.renderer``) on its own capture thread, ``fps`` times a second,
+as a real camera captures: ``read_latest`` (what the follower's control loop calls) returns the newest frame at
+once, and the render costs the loop no time. Needs the ``twin`` extra (``mujoco``, ``piper-control``).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -24,7 +26,11 @@ class PiperTwinCamera(Camera):
         super().__init__(config)
         self.config = config
         self._receiver: Any = None
-        self._renderer: Any = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._new_frame = threading.Condition()
+        self._frame: tuple[np.ndarray, float] | None = None  # the newest frame and its state's wall time
+        self._error: BaseException | None = None
 
     def __str__(self) -> str:
         return f"PiperTwinCamera({self.config.view} @ {self.config.group}:{self.config.port})"
@@ -38,11 +44,11 @@ class PiperTwinCamera(Camera):
         return [{"type": "piper_twin", "view": view} for view in ("front", "wrist")]
 
     def connect(self, warmup: bool = True) -> None:
-        """Join the state channel, wait for the first state, build the scene's renderer."""
+        """Join the state channel, wait for the first state, start the capture thread and wait for its first
+        frame (the thread builds the scene's renderer: a GL context belongs to the thread that made it)."""
         if self.is_connected:
             raise RuntimeError(f"{self} is already connected")
         try:
-            from piper_twin.renderer import TwinRenderer
             from piper_twin.state_channel import StateReceiver
         except ImportError as exc:
             raise ImportError(f"{self} needs the twin extra: pip install -e './hardware[twin]' ({exc})") from exc
@@ -54,29 +60,95 @@ class PiperTwinCamera(Camera):
                 f"{self}: no twin state within {self.config.connect_timeout_s:.1f} s; start "
                 f"piper-emulator --physics --state-group={self.config.group} --state-port={self.config.port}"
             )
-        self._renderer = TwinRenderer(snapshot.scene, self.config.width, self.config.height)
-        self._receiver = receiver
-        if warmup:
-            self.read()
+        self._receiver, self._frame, self._error = receiver, None, None
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._capture, args=(snapshot.scene,), name=str(self), daemon=True)
+        self._thread.start()
+        try:
+            self._wait_for_frame(after=None, timeout_s=max(self.config.connect_timeout_s, 10.0))
+        except BaseException:
+            self.disconnect()
+            raise
 
-    def read(self) -> np.ndarray:
-        """Render the newest state; refuses one older than ``max_age_s`` (the emulator stopped)."""
-        if self._receiver is None:
-            raise DeviceNotConnectedError(f"{self} is not connected")
-        snapshot = self._receiver.latest()
-        age = time.time() - snapshot.wall_time_s
+    def _capture(self, scene: str) -> None:
+        """The capture thread: render each new state, at most ``fps`` times a second, until disconnected."""
+        try:
+            from piper_twin.renderer import TwinRenderer
+
+            renderer = TwinRenderer(scene, self.config.width, self.config.height)
+        except BaseException as exc:  # handed to the reader
+            with self._new_frame:
+                self._error = exc
+                self._new_frame.notify_all()
+            return
+        period, rendered = 1.0 / self.config.fps, None
+        try:
+            while not self._stop.is_set():
+                started = time.monotonic()
+                snapshot = self._receiver.latest()
+                if snapshot is not None and snapshot is not rendered:
+                    frame = renderer.render(snapshot, self.config.view)
+                    rendered = snapshot
+                    with self._new_frame:
+                        self._frame = (frame, snapshot.wall_time_s)
+                        self._new_frame.notify_all()
+                self._stop.wait(max(0.0, period - (time.monotonic() - started)))
+        except BaseException as exc:
+            with self._new_frame:
+                self._error = exc
+                self._new_frame.notify_all()
+        finally:
+            renderer.close()
+
+    def _wait_for_frame(self, after: tuple[np.ndarray, float] | None, timeout_s: float) -> tuple[np.ndarray, float]:
+        """A frame other than ``after``, waiting up to ``timeout_s``; the capture thread's error is raised here."""
+        with self._new_frame:
+            self._new_frame.wait_for(lambda: self._error is not None or self._frame is not after, timeout_s)
+            if self._error is not None:
+                raise RuntimeError(f"{self}: the capture thread failed: {self._error!r}") from self._error
+            if self._frame is after:
+                raise TimeoutError(f"{self}: no new frame within {timeout_s:.2f} s")
+            return self._frame
+
+    def _fresh(self, frame: tuple[np.ndarray, float]) -> np.ndarray:
+        """``frame``'s image; refuses one from a state older than ``max_age_s`` (the emulator stopped)."""
+        age = time.time() - frame[1]
         if age > self.config.max_age_s:
             raise TimeoutError(f"{self}: no twin state for {age:.2f} s (limit {self.config.max_age_s} s)")
-        return self._renderer.render(snapshot, self.config.view)
+        return frame[0]
+
+    def read(self) -> np.ndarray:
+        """The next frame the capture thread renders (blocks up to ``max_age_s``)."""
+        if not self.is_connected:
+            raise DeviceNotConnectedError(f"{self} is not connected")
+        with self._new_frame:
+            newest = self._frame
+        return self._fresh(self._wait_for_frame(after=newest, timeout_s=self.config.max_age_s))
 
     def async_read(self, timeout_ms: float = 200) -> np.ndarray:
-        return self.read()
+        """The next frame, waiting up to ``timeout_ms``."""
+        if not self.is_connected:
+            raise DeviceNotConnectedError(f"{self} is not connected")
+        with self._new_frame:
+            newest = self._frame
+        return self._fresh(self._wait_for_frame(after=newest, timeout_s=timeout_ms / 1000))
 
     def read_latest(self, max_age_ms: int = 500) -> np.ndarray:
-        return self.read()
+        """The newest frame at once (the control loop's read), refused when its state is older than ``max_age_s``."""
+        if not self.is_connected:
+            raise DeviceNotConnectedError(f"{self} is not connected")
+        with self._new_frame:
+            if self._error is not None:
+                raise RuntimeError(f"{self}: the capture thread failed: {self._error!r}") from self._error
+            frame = self._frame
+        assert frame is not None  # connect() waited for the first
+        return self._fresh(frame)
 
     def disconnect(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
         if self._receiver is not None:
             self._receiver.close()
-            self._renderer.close()
-        self._receiver = self._renderer = None
+        self._receiver = None

@@ -23,6 +23,7 @@ from piper_sdk.kinematics.piper_fk import C_PiperForwardKinematics
 from piper_twin.demo import ScriptedDemo
 from piper_twin.model import GRIPPER_MAX_M, arm_spec
 from piper_twin.plant import TwinPlant
+from piper_twin.renderer import TwinRenderer
 from piper_twin.scenes import CubeInBowl, PressButton
 from piper_twin.state_channel import (
     PlacementRequests,
@@ -358,7 +359,7 @@ def _eventually(condition, timeout_s: float = 1.0) -> bool:
     return condition()
 
 
-def test_twin_cameras_render_the_published_state_through_lerobots_camera_factory():
+def test_twin_cameras_render_the_published_state_through_lerobots_camera_factory(monkeypatch):
     group, port = unique_udp_channel()
     plant = TwinPlant("cube_in_bowl", seed=1, pose_rad=RAISED)
     views = ("front", "wrist")
@@ -371,11 +372,21 @@ def test_twin_cameras_render_the_published_state_through_lerobots_camera_factory
         frames = {name: camera.read_latest() for name, camera in cameras.items()}
         assert {f.shape for f in frames.values()} == {(24, 32, 3)} and frames["front"].dtype == np.uint8
         assert not np.array_equal(frames["front"], frames["wrist"])
-        with publishing.lock:  # the arm elsewhere: both views change
+        with publishing.lock:  # the arm elsewhere: both views change, rendered by each camera's capture thread
             plant.reset(1, pose_rad=(0.0, 1.6, -0.6, 0.0, 0.0, 0.0))
-        time.sleep(0.05)
         for name, camera in cameras.items():
-            assert np.abs(camera.read_latest().astype(int) - frames[name]).sum() > 0, name
+            assert _eventually(lambda c=camera, n=name: not np.array_equal(c.read_latest(), frames[n])), name
+        calls: list[int] = []
+        real_render = TwinRenderer.render
+
+        def noting(self, *args, **kwargs):
+            calls.append(threading.get_ident())
+            return real_render(self, *args, **kwargs)
+
+        monkeypatch.setattr(TwinRenderer, "render", noting)
+        cameras["front"].read_latest()
+        assert _eventually(lambda: len(calls) > 0)
+        assert threading.get_ident() not in calls  # the control loop's read never renders: the capture thread does
     finally:
         for camera in cameras.values():
             camera.disconnect()
