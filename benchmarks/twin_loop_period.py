@@ -10,9 +10,9 @@ and measures the loop period from the kernel receive times of the joint commands
 benchmarks/rollout_loop_period.py does for the state policy on the kinematic firmware. A period over 1.1 control
 periods (36.7 ms at 30 Hz) is a missed tick.
 
-``lerobot-rollout`` runs as itself (LeRobot's ``main``) behind a few lines that time each camera read (the twin's
-camera renders in the rollout process, on the loop's thread) and each ``select_action`` (two clock reads per
-call), written to a file at exit. Run:
+``lerobot-rollout`` runs as itself (LeRobot's ``main``) behind a few lines that time each camera read of the loop
+(``read_latest``: the twin's camera renders in the rollout process on its own capture thread, as a real camera
+captures) and each ``select_action`` (two clock reads per call), written to a file at exit. Run:
     OMP_NUM_THREADS=1 ./run.sh python benchmarks/twin_loop_period.py [--duration 60] [--lead 3] [--skip 5]
         [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
 """
@@ -61,7 +61,7 @@ def timed(key_of, original):
         finally:
             timings.setdefault(key_of(self), []).append((wall, (time.perf_counter() - start) * 1e3))
     return wrapper
-PiperTwinCamera.read = timed(lambda cam: "camera " + cam.config.view, PiperTwinCamera.read)
+PiperTwinCamera.read_latest = timed(lambda cam: "camera " + cam.config.view, PiperTwinCamera.read_latest)
 CSOPolicy.select_action = timed(lambda policy: "select_action", CSOPolicy.select_action)
 atexit.register(lambda: open(os.environ["{TIMINGS_ENV}"], "w").write(json.dumps(timings)))
 sys.argv[0] = "lerobot-rollout"
