@@ -589,13 +589,24 @@ class PiperDriver:
         release = firmware_release(self.link.state().firmware_version)
         return release is None or release < LEAVES_HIGH_FOLLOW_WITHOUT_RESET
 
-    def _foreign_high_follow_since(self, since: float) -> bool:
-        """Whether another host (a plugged-in leader) asked for high-follow (0x151 … AD) after ``since``."""
+    def _foreign_mode_since(self, since: float) -> ModeControl | None:
+        """The latest mode change (0x151) from another host (a plugged-in leader), if after ``since``."""
         kept = self.link.cache.latest(ID_MODE_CONTROL)
         if kept is None or kept[1] <= since:
-            return False
+            return None
         mode = decode_command(ID_MODE_CONTROL, kept[0])
-        return isinstance(mode, ModeControl) and mode.mit_mode == MIT_MODE_HIGH_FOLLOW
+        return mode if isinstance(mode, ModeControl) else None
+
+    def _foreign_high_follow_since(self, since: float) -> bool:
+        """Whether another host (a plugged-in leader) asked for high-follow (0x151 … AD) after ``since``."""
+        mode = self._foreign_mode_since(since)
+        return mode is not None and mode.mit_mode == MIT_MODE_HIGH_FOLLOW
+
+    def _is_our_mode(self, mode: ModeControl) -> bool:
+        """Whether ``mode`` moves the arm as ours does (the speed matters only outside high-follow)."""
+        ours = self._mode()
+        same = (mode.ctrl_mode, mode.move_mode, mode.mit_mode) == (ours.ctrl_mode, ours.move_mode, ours.mit_mode)
+        return same and (self.config.high_follow or mode.speed_percent == ours.speed_percent)
 
     def _foreign_reset_since(self, since: float) -> float | None:
         """When another host last reset the arm (0x150 02), if after ``since``."""
@@ -771,12 +782,18 @@ class PiperDriver:
 
     # ------------------------------------------------------------------------------- motion
     def command(self, joints_rad: Sequence[float], gripper_m: float | None = None) -> SentCommand:
-        """Clamp to the limits and the step limit, then send 0x151 + 0x155..0x157 (+ 0x159).
+        """Clamp to the limits and the step limit, then send 0x155..0x157 (+ 0x159).
 
         Refused (nothing sent) unless the latest feedback shows every joint (and the gripper, if it
         gets a target) enabled, CAN command mode and MOVE J, no blocking fault, no e-stop request and
-        no motion latch (a reset, disable, disconnect or foreign reset since the last confirmed
-        enable); the e-stop and the latch are checked again under the send lock before every frame.
+        no motion latch (a reset, disable, disconnect, foreign reset or foreign mode change since the
+        last confirmed enable); the e-stop and the latch are checked again under the send lock before
+        every frame.
+
+        No 0x151 goes with a command: the mode is selected, and confirmed by the status, only by
+        ``enable``. A firmware that another host reset meanwhile is in standby, where it ignores joint
+        frames; a 0x151 in front of them would put it back into CAN command mode until the delayed
+        motor-off.
         """
         steps = self.config.joint_steps()
         return self._command(joints_rad, gripper_m, steps, self.config.max_gripper_step_m)
@@ -807,7 +824,7 @@ class PiperDriver:
             for j, (goal, now, bounds) in enumerate(zip(goals, present, self.limits.joints_rad, strict=True))
         )
         self._refuse_if_frozen(state, safe)
-        frames: list[Frame] = [self._mode_frame(), *encode_joint_targets(safe)]
+        frames: list[Frame] = list(encode_joint_targets(safe))
         safe_gripper = None
         if gripper_m is not None:
             safe_gripper = safe_target(gripper_m, state.gripper.value.opening_m, self.limits.gripper_m, gripper_step)
@@ -887,15 +904,19 @@ class PiperDriver:
             raise ArmNotReadyError(f"PiPER on {self.link.where}: {problem}; command refused")
 
     def _foreign_problem(self) -> str | None:
-        """A reset, or a high-follow request this firmware keeps, from another host since the enable."""
+        """A reset, or a mode change other than ours, from another host since the enable. Commands send no
+        0x151, so nothing else would put our mode back."""
         if self._foreign_reset_since(self._session_start) is not None:
             return (
                 f"another host reset the arm (0x150 02): its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later; "
                 "call enable()"
             )
+        mode = self._foreign_mode_since(self._session_start)
+        if mode is None or self._is_our_mode(mode):
+            return None
         if (
-            not self.config.high_follow
-            and self._foreign_high_follow_since(self._session_start)
+            mode.mit_mode == MIT_MODE_HIGH_FOLLOW
+            and not self.config.high_follow
             and self._high_follow_exit_needs_reset()
         ):
             self._may_be_high_follow = True
@@ -903,7 +924,14 @@ class PiperDriver:
                 "another host (a plugged-in leader?) put the arm in high-follow (0x151 … AD), which this firmware "
                 "leaves only after a reset; call enable()"
             )
-        return None
+        theirs, ours = (
+            " ".join(f"{byte:02x}" for byte in (m.ctrl_mode, m.move_mode, m.speed_percent, m.mit_mode))
+            for m in (mode, self._mode())
+        )
+        return (
+            f"another host (a plugged-in leader?) changed the arm's mode (0x151 {theirs} …, ours is {ours} …); "
+            "call enable() to select ours again"
+        )
 
     def _refuse_if_not_ready(self, state: ArmState, with_gripper: bool) -> None:
         problem = _mode_problem(state)
@@ -965,9 +993,12 @@ class PiperDriver:
         self.recover(Recovery.RESET)
 
     # ------------------------------------------------------------------------------ frames
-    def _mode_frame(self) -> Frame:
+    def _mode(self) -> ModeControl:
         mit = MIT_MODE_HIGH_FOLLOW if self.config.high_follow else MIT_MODE_POSITION_VELOCITY
-        return encode(ModeControl(CtrlMode.CAN, MoveMode.J, self.config.speed_percent, mit))
+        return ModeControl(CtrlMode.CAN, MoveMode.J, self.config.speed_percent, mit)
+
+    def _mode_frame(self) -> Frame:
+        return encode(self._mode())
 
     def _gripper_frame(self, opening_m: float, code: GripperStatusCode) -> Frame:
         return encode(GripperCommand(opening_m, self.config.gripper_effort_nm, code))

@@ -70,7 +70,7 @@ def test_a_command_racing_a_reset_sends_no_frame_after_the_reset(gripper):
 
         def gate(*frames, guard=None):
             # Thread B's command has passed its readiness check; thread A's reset reaches the bus first.
-            if frames[0].arbitration_id == 0x151 and not raced:
+            if frames[0].arbitration_id == 0x155 and not raced:
                 raced.append(True)
                 driver.reset()
             send(*frames, guard=guard)
@@ -84,7 +84,7 @@ def test_a_command_racing_a_reset_sends_no_frame_after_the_reset(gripper):
         frames = rig.drain()
         reset = [i for i, m in enumerate(frames) if is_reset(m)]
         assert raced and len(reset) == 1
-        assert ids_after(frames, reset[0]) == []  # the 0x151 that re-enters CAN mode never went out
+        assert ids_after(frames, reset[0]) == []  # the latch under the send lock: nothing follows the reset
         assert rig.arm.ctrl_mode == codec.CtrlMode.STANDBY and rig.arm.targets_rad == pytest.approx(POSE, abs=1e-3)
         with pytest.raises(ArmNotReadyError, match="the arm was reset"):
             driver.command(NEXT)  # latched until an enable confirms
@@ -195,7 +195,7 @@ def test_a_reset_seen_mid_stream_latches_motion():
         foreign: list[bool] = []
 
         def gate(*frames, guard=None):  # the foreign reset arrives between our check and our frames
-            if frames[0].arbitration_id == 0x151 and not foreign:
+            if frames[0].arbitration_id == 0x155 and not foreign:
                 foreign.append(True)
                 send_foreign(rig, 0x150, bytes([0x02]))
                 rig.driver.link.poll()
@@ -208,6 +208,42 @@ def test_a_reset_seen_mid_stream_latches_motion():
         frames = rig.drain()
         reset = [i for i, m in enumerate(frames) if is_reset(m)]
         assert len(reset) == 1 and ids_after(frames, reset[0]) == []
+
+
+@pytest.mark.parametrize("gripper", [None, 0.02], ids=["joints-only", "with-gripper"])
+def test_a_foreign_reset_our_reader_has_not_seen_is_not_undone_by_our_frames(gripper):
+    # Another host's 0x150 02 reaches the bus after our command passed its readiness check and before its
+    # frames, and our reader has not handled it yet: the frames reach a firmware in standby with its
+    # motor-off pending. Joint frames are ignored there; a 0x151 in front of them would put the firmware
+    # back into CAN command mode and the arm would move until the delayed motor-off.
+    with make_rig(EmulatorConfig(profile="light")) as rig:
+        walk_to(rig, POSE)
+        send = rig.driver.link.send
+        landed: list[bool] = []
+
+        def gate(*frames, guard=None):
+            if not landed:
+                landed.append(True)
+                send_foreign(rig, 0x150, bytes([0x02]))  # not polled: our reader has not seen it
+            send(*frames, guard=guard)
+
+        rig.driver.link.send = gate
+        ignored = rig.arm.ignored["wrong mode"]
+        rig.driver.command(NEXT, gripper)  # nothing has told the driver of the reset yet
+        rig.driver.link.send = send
+        rig.sleep(0.02)
+        assert landed and rig.arm.motor_off_pending
+        assert rig.arm.ctrl_mode == codec.CtrlMode.STANDBY  # not put back into CAN command mode
+        assert rig.arm.targets_rad == pytest.approx(POSE, abs=1e-3)
+        assert rig.arm.ignored["wrong mode"] - ignored == 3  # 0x155..0x157 reached it and were ignored
+        if gripper is not None:  # the residual: the gripper takes targets in standby (the vendor's demo does)
+            assert rig.arm.gripper_m > 0.0
+        with pytest.raises(ArmNotReadyError, match="another host reset the arm"):
+            rig.driver.command(NEXT)
+        rig.sleep(MOTOR_OFF_S)
+        assert rig.arm.enabled == (False,) * 6 and not rig.arm.gripper_enabled
+        rig.driver.enable()
+        walk_to(rig, NEXT)
 
 
 def test_a_fresh_driver_waits_out_a_reset_it_did_not_see():
@@ -258,6 +294,31 @@ def test_a_leader_plugged_in_mid_session_is_not_commanded_through():
         stepped = (POSE[0] + 0.2, *POSE[1:])
         walk_to(rig, POSE)
         assert max_speed_of_a_step(rig, stepped) <= 1.5 + 1e-6
+
+
+@pytest.mark.parametrize(
+    ("firmware", "mode"),
+    [("S-V1.8-2", bytes([0x01, 0x01, 0x64, 0x00])), ("S-V1.8-5", bytes([0x01, 0x01, 0x64, 0xAD]))],
+    ids=["position-at-100-percent", "high-follow-on-new-firmware"],
+)
+def test_another_hosts_mode_change_latches_motion_until_enable(firmware, mode):
+    # Commands send no 0x151, so nothing puts our mode back after another host's: a faster speed, or
+    # high-follow on firmware that would leave it on our 0x151, must not be commanded through.
+    config = EmulatorConfig(profile="light", firmware_text=f"H-V1.2-1 {firmware} P-V1.0.0 PiPER emulator")
+    with make_rig(config) as rig:
+        walk_to(rig, POSE)
+        send_foreign(rig, 0x151, mode)
+        rig.sleep(0.02)
+        assert (rig.arm.speed_percent, rig.arm.mit_mode) == (0x64, mode[3])
+        rig.drain()
+        with pytest.raises(ArmNotReadyError, match="changed the arm's mode"):
+            rig.driver.command(NEXT)
+        assert [m for m in rig.drain() if m.arbitration_id in MOTION_IDS] == []
+        rig.driver.enable()  # selects (and confirms) ours again, without a reset on either firmware
+        assert (rig.arm.speed_percent, rig.arm.mit_mode) == (50, 0x00)
+        assert [m for m in rig.drain() if m.arbitration_id == 0x150] == []
+        walk_to(rig, POSE)
+        assert max_speed_of_a_step(rig, (POSE[0] + 0.2, *POSE[1:])) <= 1.5 + 1e-6
 
 
 def test_a_power_cycle_into_high_follow_during_a_feedback_gap_is_exited():
