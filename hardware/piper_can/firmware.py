@@ -4,11 +4,13 @@ No threads, no clock, no I/O: time advances only through ``tick``, so tests step
 ``piper_can.emulator`` runs this model on a python-can bus.
 
 Follower role: 200 Hz feedback (0x2A1..0x2A8, 0x251..0x256) and 40 Hz driver info (0x261..0x266); an
-enable state machine with latency and no acknowledgement; joints that move toward their targets at
-``max_speed × speed %`` (position mode) or with fast first-order tracking (high-follow 0xAD); flash
-limits (clamp or reject, with the firmware's status and error bits); the gripper; e-stop, and a reset
-that clears the status at once but switches the motors off ``reset_motor_off_delay_s`` later (as
-measured on a real arm); firmware older than S-V1.8-5 ignoring 0x151 in high-follow until a reset;
+enable state machine with latency and no acknowledgement; joint frames taken only in CAN command mode
+(0x151 01) with MOVE J or high-follow, so ignored in standby, e.g. right after a reset (the gripper's
+0x159 is taken in any mode, as the vendor's gripper demo, which sends no 0x151, relies on); joints that
+move toward their targets at ``max_speed × speed %`` (position mode) or with fast first-order tracking
+(high-follow 0xAD); flash limits (clamp or reject, with the firmware's status and error bits); the
+gripper; e-stop, and a reset that clears the status at once but switches the motors off
+``reset_motor_off_delay_s`` later (as measured on a real arm); firmware older than S-V1.8-5 ignoring 0x151 in high-follow until a reset;
 no enable for a joint past its limit; 0x475 clear-error; 0x474 / 0x475 joint speed and acceleration
 caps; 0x477 / 0x47A / 0x47B collision-protection levels; firmware-version and limit replies; host
 frames lost on the firmware's side (``lose_next``). Leader role (0x470 0xFA): emits
