@@ -10,11 +10,12 @@ enable state machine with latency and no acknowledgement; joint frames taken onl
 move toward their targets at ``max_speed × speed %`` (position mode) or with fast first-order tracking
 (high-follow 0xAD); flash limits (clamp or reject, with the firmware's status and error bits); the
 gripper; e-stop, and a reset that clears the status at once but switches the motors off
-``reset_motor_off_delay_s`` later (as measured on a real arm); firmware older than S-V1.8-5 ignoring 0x151 in high-follow until a reset;
-no enable for a joint past its limit; 0x475 clear-error; 0x474 / 0x475 joint speed and acceleration
-caps; 0x477 / 0x47A / 0x47B collision-protection levels; firmware-version and limit replies; host
-frames lost on the firmware's side (``lose_next``). Leader role (0x470 0xFA): emits
-0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host commands.
+``reset_motor_off_delay_s`` later (as measured on a real arm); firmware older than S-V1.8-5 ignoring
+0x151 in high-follow until a reset; no enable for a joint past its limit; 0x475 clear-error; 0x474 /
+0x475 joint speed and acceleration caps; 0x477 / 0x47A / 0x47B collision-protection levels;
+firmware-version and limit replies; host frames lost on the firmware's side (``lose_next``). Leader role
+(0x470 0xFA): emits 0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host
+commands.
 
 The joints and the gripper move kinematically unless a ``Plant`` is given (``piper_twin``'s physics): then
 the firmware's motion planner produces setpoints and drive modes (servo, limp when disabled, damped when
