@@ -8,9 +8,10 @@ Launch any rollout stage on N processes (one env pool and policy replica each)::
   groups ``r, r + N, r + 2N, ...`` on its own backend and sampling stream, then every episode is gathered to
   every process, in request order. Which states a stage uses never depends on N (they come from its world),
   so seed ranges stay disjoint and a run resumes with another N.
-* **Prior updates** (:func:`all_reduce_gradients`): each process back-propagates its rows of every
-  minibatch, its loss divided by the whole minibatch's unit count, and the gradients are summed over the
-  processes: the sum is the whole minibatch's gradient, so every replica takes the same step as one process.
+* **Training steps** (:func:`accelerator_for`, :func:`step_meters`): R-SFT and SPO both step with LeRobot's
+  ``update_policy`` (as ``lerobot-train``) under one ``Accelerator``: DDP averages the gradients over the
+  processes, so a loss that is each process's share of its batch is scaled by the process count (SPO's
+  objective) or is a mean over equal shards (R-SFT's): every replica takes the same step as one process.
 * **Writes**: only the main process writes checkpoints, buffers and logs (:func:`is_main`); the others wait.
 
 With one process (plain ``lerobot-cso ...``) every function here is the identity.
@@ -22,8 +23,9 @@ from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import torch
-from accelerate import PartialState
+from accelerate import Accelerator, DistributedDataParallelKwargs, PartialState
 from accelerate.utils import gather_object
+from lerobot.utils.logging_utils import AverageMeter
 
 from lerobot_cso import seeds
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutResult
@@ -110,15 +112,22 @@ def shard_rows(n: int) -> slice:
     return slice(s.process_index, n, s.num_processes)
 
 
-def all_reduce_gradients(parameters: Sequence[torch.nn.Parameter]) -> None:
-    """Sum the gradients of ``parameters`` over all processes (each process scales its loss so the sum is the
-    minibatch's gradient); a no-op with one process."""
-    if state().num_processes == 1:
-        return
-    for p in parameters:
-        if p.grad is None:
-            p.grad = torch.zeros_like(p)
-        torch.distributed.all_reduce(p.grad)
+def accelerator_for(policy: torch.nn.Module) -> Accelerator:
+    """The ``Accelerator`` a training stage steps under with LeRobot's ``update_policy``: DDP over the processes of
+    ``accelerate launch`` (none with one process). Parameters that take no part in a loss are allowed: the skill
+    autoencoder in Eq. 6 and in SPO's objective, the encoders when frozen."""
+    ddp = DistributedDataParallelKwargs(find_unused_parameters=True)
+    return Accelerator(cpu=policy.config.device == "cpu", kwargs_handlers=[ddp])
+
+
+def step_meters() -> dict[str, AverageMeter]:
+    """Fresh meters for a ``MetricsTracker`` of ``update_policy`` steps (a tracker adds the loss's own outputs to
+    this dict, and a later tracker would treat those as the caller's and never update them)."""
+    meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
+    meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
+    if torch.cuda.is_available():  # update_policy then records the peak GPU memory, as lerobot-train
+        meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
+    return meters
 
 
 def weighted_mean(values: dict[str, float], weight: float) -> dict[str, float]:

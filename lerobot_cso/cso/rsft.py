@@ -34,11 +34,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from accelerate import Accelerator, DistributedDataParallelKwargs
 from lerobot.configs import parser
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.scripts.lerobot_train import update_policy
-from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
+from lerobot.utils.logging_utils import MetricsTracker
 from tqdm import tqdm
 
 from lerobot_cso import distributed, rollout_stage, seeds
@@ -429,16 +428,6 @@ def _advantage_sampler(
     return torch.utils.data.WeightedRandomSampler(weights, n_items, replacement=True, generator=generator)
 
 
-def _epoch_meters() -> dict[str, AverageMeter]:
-    """Fresh meters per epoch: the tracker adds the policy's own (nll, token_acc) to this dict, and a later tracker
-    would treat those as the caller's and never update them."""
-    meters = {"loss": AverageMeter("loss", ":.4f"), "grad_norm": AverageMeter("grdn", ":.3f")}
-    meters |= {"lr": AverageMeter("lr", ":0.1e"), "update_s": AverageMeter("updt_s", ":.3f")}
-    if torch.cuda.is_available():  # LeRobot's update_policy then records the peak GPU memory, as lerobot-train
-        meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
-    return meters
-
-
 def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     """Eq. 6 on the buffer's decision frames, then freeze the encoders and save the checkpoint.
 
@@ -474,8 +463,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     optimizer = optimizer_cfg.build(policy.get_optim_params())
     scheduler = scheduler_cfg.build(optimizer, cfg.epochs * len(loader))
     # Data-parallel under accelerate launch: a shard of every epoch per process, gradients all-reduced.
-    ddp = DistributedDataParallelKwargs(find_unused_parameters=True)  # the autoencoder takes no part in Eq. 6
-    accelerator = Accelerator(cpu=policy.config.device == "cpu", kwargs_handlers=[ddp])
+    accelerator = distributed.accelerator_for(policy)
     policy, optimizer, loader, scheduler = accelerator.prepare(policy, optimizer, loader, scheduler)
     main = accelerator.is_main_process
     if main:
@@ -486,7 +474,9 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     if start_epoch:
         accelerator.load_state(state.directory)
     for epoch in range(start_epoch, cfg.epochs):
-        tracker = MetricsTracker(cfg.batch_size, len(items), ds.num_episodes, _epoch_meters(), epoch * len(loader))
+        tracker = MetricsTracker(
+            cfg.batch_size, len(items), ds.num_episodes, distributed.step_meters(), epoch * len(loader)
+        )
         for batch in tqdm(loader, desc=f"R-SFT epoch {epoch + 1}/{cfg.epochs}", leave=False):
             tracker, _ = update_policy(
                 tracker, policy, pre(batch), optimizer, optimizer_cfg.grad_clip_norm, accelerator, scheduler

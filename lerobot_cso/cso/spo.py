@@ -35,8 +35,11 @@ from typing import Any, ClassVar
 import matplotlib
 import numpy as np
 import torch
+from accelerate import Accelerator
 from lerobot.configs import parser
 from lerobot.configs.default import WandBConfig
+from lerobot.scripts.lerobot_train import update_policy
+from lerobot.utils.logging_utils import MetricsTracker
 
 from lerobot_cso import distributed, rollout_stage, seeds
 from lerobot_cso.checkpoints import load_policy, save_checkpoint
@@ -316,48 +319,75 @@ def collect_groups(
     return accepted, stats, cursor
 
 
-def update(
-    cfg: SPOConfig, policy: CSOPolicy, optimizer: torch.optim.Optimizer, batch: Batch, generator: torch.Generator
-) -> dict[str, float]:
-    """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21).
+class ClippedObjective(torch.nn.Module):
+    """SPO's loss on one minibatch as a module, so that LeRobot's ``update_policy`` takes SPO's optimizer step as it
+    takes R-SFT's and ``lerobot-train``'s. ``forward(rows)`` is this process's share of Eq. 9 (the clipped
+    surrogate, :func:`~lerobot_cso.cso.objectives.clipped_surrogate_loss`) on trajectories ``rows`` of the data set
+    with :meth:`use`, normalised by the whole minibatch's unit count. ``train()`` leaves the policy in eval mode:
+    dropout and augmentation stay off, so π_old and π are evaluated identically."""
 
-    Data-parallel over processes (:mod:`lerobot_cso.distributed`): every process holds the whole batch and
-    the same minibatches; each back-propagates its rows of a minibatch, normalised by the whole minibatch's
-    unit count, and the summed gradients give every replica the same step.
+    def __init__(self, cfg: SPOConfig, policy: CSOPolicy) -> None:
+        super().__init__()
+        self.cfg, self.policy = cfg, policy
+        self.objective = cfg.loss_objective()
+        self.data: tuple[Batch, torch.Tensor] | None = None
+
+    def use(self, batch: Batch, old: torch.Tensor) -> None:
+        """The iteration's data and its log-probs under π_old."""
+        self.data = (batch, old)
+
+    def train(self, mode: bool = True) -> "ClippedObjective":
+        self.training = mode
+        return self
+
+    def forward(self, rows: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        batch, old = self.data
+        granularity = self.objective.granularity
+        units = surrogate_units(batch.mask[rows], batch.tokens.shape[-1], granularity)
+        mine = rows[distributed.shard_rows(len(rows))]
+        if not len(mine):  # every process steps together: this one adds no gradient
+            return sum(p.sum() for p in trained_parameters(self.policy)) * 0.0, {"weight": 0.0}
+        new = padded_logprobs(self.policy, batch, mine, self.cfg.ratio_sampling())
+        loss, stats = clipped_surrogate_loss(
+            new, old[mine], batch.mask[mine], batch.advantages[mine], granularity, self.objective.clip, n_units=units
+        )
+        weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], granularity))
+        logged = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0), "weight": weight}
+        processes = distributed.state().num_processes
+        return (loss * processes if processes > 1 else loss), logged  # DDP averages: the sum is the minibatch's
+
+
+def update(
+    cfg: SPOConfig,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    accelerator: Accelerator,
+    batch: Batch,
+    generator: torch.Generator,
+) -> dict[str, float]:
+    """N epochs of minibatch updates of the prior on one iteration's data (Algorithm 1, line 21), each an
+    ``update_policy`` step of ``model`` (a :class:`ClippedObjective`, wrapped in DDP by ``accelerator`` when there
+    are several processes).
+
+    Data-parallel over processes (:mod:`lerobot_cso.distributed`): every process holds the whole batch and the same
+    minibatches and back-propagates its rows of each; DDP's average of the scaled shares is the minibatch's
+    gradient, so every replica takes the same step.
     """
-    policy.eval()  # dropout and augmentation off: π_old and π are evaluated identically
+    objective = accelerator.unwrap_model(model)
+    objective.policy.eval()
     n = len(batch.tokens)
     with torch.no_grad():
-        old = padded_logprobs(policy, batch, torch.arange(n), cfg.ratio_sampling())
-    objective = cfg.loss_objective()
-    trained = trained_parameters(policy)
+        old = padded_logprobs(objective.policy, batch, torch.arange(n), cfg.ratio_sampling())
+    objective.use(batch, old)
+    tracker = MetricsTracker(cfg.minibatch_trajectories, n, n, distributed.step_meters())
     rows: list[dict[str, float]] = []
     for _ in range(cfg.epochs):
         if rows and cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
             break
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_trajectories):
-            units = surrogate_units(batch.mask[idx], batch.tokens.shape[-1], objective.granularity)
-            mine = idx[distributed.shard_rows(len(idx))]
-            optimizer.zero_grad()
-            local, weight = {}, 0.0
-            if len(mine):
-                new = padded_logprobs(policy, batch, mine, cfg.ratio_sampling())
-                loss, stats = clipped_surrogate_loss(
-                    new,
-                    old[mine],
-                    batch.mask[mine],
-                    batch.advantages[mine],
-                    objective.granularity,
-                    objective.clip,
-                    n_units=units,
-                )
-                loss.backward()
-                weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], objective.granularity))
-                local = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0)}
-            distributed.all_reduce_gradients(trained)
-            grad_norm = torch.nn.utils.clip_grad_norm_(trained, cfg.grad_clip_norm)
-            optimizer.step()
-            rows.append({**distributed.weighted_mean(local, weight), "grad_norm": float(grad_norm)})
+            tracker, logged = update_policy(tracker, model, idx, optimizer, cfg.grad_clip_norm, accelerator)
+            weight = logged.pop("weight")
+            rows.append({**distributed.weighted_mean(logged, weight), "grad_norm": tracker.grad_norm.val})
             if cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
                 break
     return {key: float(np.mean([r[key] for r in rows])) for key in UPDATE_STATS} | {"updates": len(rows)}
@@ -460,6 +490,8 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] | None = N
         _finish_copy(cfg, state)
         return progress["history"]
     policy, pre, post, optimizer = _load(cfg, state, resume=saved is not None)
+    accelerator = distributed.accelerator_for(policy)
+    model = accelerator.prepare(ClippedObjective(cfg, policy))
     generator = torch.Generator().manual_seed(cfg.seed)
     run = _wandb_run(cfg)
     history, cursor, skip_until = progress["history"], progress["cursor"], progress.get("skip_until", {})
@@ -474,7 +506,7 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] | None = N
             if groups:
                 with cfg.training():
                     batch = Batch.from_groups(groups, cfg.loss_objective().advantage, policy.config.device)
-                    stats |= update(cfg, policy, optimizer, batch, generator)
+                    stats |= update(cfg, model, optimizer, accelerator, batch, generator)
             else:  # every group was uniform: nothing to learn from this iteration
                 stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
