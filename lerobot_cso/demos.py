@@ -20,7 +20,8 @@ dir holding a dataset made with other settings, or anything else, is refused.
 (LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
 (LeRobot downloads it into ``dataset_root`` when the folder lacks it and the Hub is reachable). Nothing is
 generated: :class:`DatasetStage` checks that the dataset fits the world (``observation.state`` and ``action``
-shapes, camera names) and holds every task the run names (by language description), and IL trains on it.
+shapes, camera names) and holds every task the run names (by language description), and IL trains on it. LeRobot's
+own MetaWorld format is one such dataset: a ``corner2`` ``observation.image`` and the 4-d hand state.
 
 Durability: every finished episode is written at once, atomically, to ``<output_dir>.partial/`` (an
 :class:`~lerobot_cso.durable.EpisodeJournal`); the dataset is assembled from there when all episodes exist
@@ -55,7 +56,7 @@ from lerobot_cso.durable import (
 )
 from lerobot_cso.errors import UsageError, check_number, check_output_dir, interruptible
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
-from lerobot_cso.worlds.base import SimWorld
+from lerobot_cso.worlds.base import SimWorld, camera_inputs
 from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
 from lerobot_cso.worlds.metaworld.env import select_state
 from lerobot_cso.worlds.metaworld.env_config import parse_cameras
@@ -160,7 +161,7 @@ def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
         if shape not in [(dim,) for dim in dims]:
             wanted = " or ".join(f"({dim},)" for dim in dims)
             raise UsageError(f"{root}: {world.name} needs '{key}' of shape {wanted}, the dataset has {shape}")
-    cameras = [key.removeprefix("observation.images.") for key in meta.camera_keys]
+    cameras = list(camera_inputs(meta.features, world).values())  # LeRobot's observation.image: its MetaWorld view
     unknown = [cam for cam in cameras if cam not in world.cameras]
     if unknown:
         raise UsageError(

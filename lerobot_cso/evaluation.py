@@ -30,6 +30,7 @@ from lerobot_cso import rollout_stage
 from lerobot_cso.durable import output_lock, read_json
 from lerobot_cso.errors import UsageError, interruptible
 from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
+from lerobot_cso.worlds.base import camera_inputs
 
 
 @dataclass
@@ -68,10 +69,8 @@ class EvalConfig(RolloutStageConfig):
             raise UsageError(f"episodes_per_task must be in [1, {most}], got {self.episodes_per_task}")
         if not 0 <= self.video_episodes <= self.episodes_per_task:
             raise UsageError(f"video_episodes must be in [0, episodes_per_task], got {self.video_episodes}")
-        from lerobot_cso.rollout.engine import cameras_of
-
         features = policy_features(self)  # none on the pipeline's stand-in for a policy still to be trained
-        if self.video_episodes and features and not cameras_of(features):
+        if self.video_episodes and features and not camera_inputs(features, self.rollout_world()):
             raise UsageError("video_episodes: the policy reads no camera, so there is no frame to write")
         self.eval_seeds()
         return tasks
@@ -173,13 +172,13 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     """Run the evaluation; returns the summary rows (also written to ``cfg.output_dir``)."""
     from lerobot_cso import distributed
     from lerobot_cso.checkpoints import load_policy
-    from lerobot_cso.rollout.engine import policy_cameras
 
     tasks = cfg.validate()
     eval_seed_list = cfg.eval_seeds()
     path = cfg.policy.pretrained_path
     policy, pre, post = load_policy(path, cfg.policy)
     world = cfg.rollout_world()
+    camera = next(iter(camera_inputs(policy.config.input_features, world).values()), None)  # the one filmed
     success: dict[str, dict[int, float]] = {task: {} for task in tasks}
     episodes, throughput, videos = [], [], []
     with distributed.ShardedRollouts(rollout_stage.stage_engine(policy, pre, post, cfg)) as engine:
@@ -193,7 +192,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
             if filmed and distributed.is_main():
                 kept = [result.episodes[i] for i in filmed]
                 fps = world.fps / policy.config.n_action_steps
-                videos += [str(p) for p in write_videos(cfg.output_dir, kept, policy_cameras(policy)[0], fps)]
+                videos += [str(p) for p in write_videos(cfg.output_dir, kept, camera, fps)]
             for task in tasks:
                 success[task][s] = float(np.mean([e.success for e in result.episodes if e.task == task]))
             episodes += [

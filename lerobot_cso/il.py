@@ -100,7 +100,7 @@ class ILStage:
             f"--output_dir={self.out}",
             f"--dataset.root={self.dataset}",
             f"--dataset.repo_id={self.repo_id}",
-            "--dataset.video_backend=pyav",  # no videos in the demos; skips probing torchcodec
+            "--dataset.video_backend=pyav",  # a dataset's videos decode with pyav; skips probing torchcodec
             f"--steps={il.steps}",
             f"--num_workers={il.num_workers}",
         ]

@@ -23,11 +23,11 @@ import torch
 
 from lerobot_cso.checkpoints import PolicyPathConfig
 from lerobot_cso.errors import UsageError, check_output_dir
-from lerobot_cso.rollout.engine import RolloutEngine, SkillPolicy, policy_cameras
+from lerobot_cso.rollout.engine import RolloutEngine, SkillPolicy
 from lerobot_cso.rollout.pool import VECTORIZATIONS
 from lerobot_cso.sampling import Sampling
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
-from lerobot_cso.worlds.base import Rollouts, World, WorldConfig
+from lerobot_cso.worlds.base import Rollouts, World, WorldConfig, camera_inputs
 from lerobot_cso.worlds.registry import default_world
 
 
@@ -132,7 +132,8 @@ def stage_engine(
     """The engine of a rollout stage: the backend of its world, with the cameras the policy reads, keeping each
     decision's encoder inputs when the stage asks for them."""
     world = settings.rollout_world()
-    backend = world.backend(settings.rollouts(tuple(policy_cameras(policy))))
+    cameras = tuple(camera_inputs(policy.config.input_features, world).values())
+    backend = world.backend(settings.rollouts(cameras))
     return RolloutEngine(policy, preprocessor, postprocessor, backend, world.task_description, settings.keeps_inputs)
 
 

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 import torch
 from lerobot.envs.utils import preprocess_observation
-from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
+from lerobot.utils.constants import OBS_IMAGE
 from torch import Tensor
 
 from lerobot_cso.rollout.backend import ActiveSkill, Job, RolloutBackend, Trace
@@ -340,14 +340,3 @@ class RolloutEngine:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def policy_cameras(policy: SkillPolicy) -> list[str]:
-    """The cameras a policy reads: its ``observation.images.<camera>`` inputs."""
-    return cameras_of(policy.config.input_features)
-
-
-def cameras_of(features: dict[str, Any]) -> list[str]:
-    """The cameras among a policy config's input features (its ``observation.images.<camera>`` inputs)."""
-    prefix = f"{OBS_IMAGES}."
-    return [key.removeprefix(prefix) for key in features if key.startswith(prefix)]

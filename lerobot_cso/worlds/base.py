@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Literal, Protocol
 import draccus
 from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
 
+from lerobot_cso.errors import UsageError
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Frames
 
@@ -42,7 +43,9 @@ class Rollouts:
 
 
 class World(Protocol):
-    """A world's names, initial states and backend."""
+    """A world's names, initial states and backend. A world whose LeRobot env renders one camera, given to a policy
+    as LeRobot's single-camera ``observation.image``, names it in an optional ``single_camera`` attribute
+    (:func:`camera_inputs`)."""
 
     name: str
     robot_type: str  # LeRobotDataset's robot_type of buffers recorded in this world
@@ -101,6 +104,27 @@ class WorldConfig(draccus.ChoiceRegistry, abc.ABC):
     @abc.abstractmethod
     def build(self, tasks: str, policy: Any, output_dir: Path | None) -> World:
         """The world a stage with these ``--tasks``, policy config and output dir rolls out in."""
+
+
+def camera_inputs(features: Mapping[str, Any], world: Any = None) -> dict[str, str]:
+    """The camera each image input of a policy shows, by input key (the one mapping between a policy's image
+    features and a world's cameras): ``observation.images.<camera>`` shows ``<camera>``; LeRobot's single-camera
+    ``observation.image`` shows the world's ``single_camera``, the camera its LeRobot env renders (MetaWorld's
+    ``corner2``). ``UsageError`` for ``observation.image`` in a world without one."""
+    cameras = {}
+    for key in features:
+        if key == OBS_IMAGE:
+            single = getattr(world, "single_camera", None)
+            if single is None:
+                name = getattr(world, "name", "this world")
+                raise UsageError(
+                    f"{OBS_IMAGE} (LeRobot's single-camera key) shows no camera of {name}: "
+                    f"its camera images are named {OBS_IMAGES}.<camera>"
+                )
+            cameras[key] = single
+        elif key.startswith(f"{OBS_IMAGES}."):
+            cameras[key] = key.removeprefix(f"{OBS_IMAGES}.")
+    return cameras
 
 
 def image_size_of(features: Mapping[str, Any], default: int) -> int:

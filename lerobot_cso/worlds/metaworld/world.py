@@ -13,12 +13,12 @@ from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar
 
-from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import OBS_STATE
 
 from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Frames, open_pool
-from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, image_size_of
+from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, camera_inputs, image_size_of
 from lerobot_cso.worlds.metaworld.constants import (
     ACTION_DIM,
     CAMERAS,
@@ -65,15 +65,12 @@ def policy_pool(
 def env_inputs(features: Mapping[str, Any]) -> tuple[tuple[str, ...], int, str]:
     """The cameras, image size and state layout of envs that give a policy with these input features what it reads:
     the cameras of its ``observation.images.<camera>`` inputs, or for LeRobot's own MetaWorld format
-    (``observation.image``) the camera LeRobot's MetaWorld env renders, flipped as it flips it; its image size;
+    (``observation.image``) the camera LeRobot's MetaWorld env renders (:func:`~lerobot_cso.worlds.base.camera_inputs`),
+    flipped as it flips it; its image size;
     the state layout of its ``observation.state`` size (the full state without one)."""
     from lerobot_cso.worlds.metaworld.env import state_layout
 
-    cameras = tuple(
-        LEROBOT_CAMERA if key == OBS_IMAGE else key.removeprefix(f"{OBS_IMAGES}.")
-        for key in features
-        if key == OBS_IMAGE or key.startswith(f"{OBS_IMAGES}.")
-    )
+    cameras = tuple(camera_inputs(features, MetaWorld).values())
     state = state_layout(features[OBS_STATE].shape[-1]) if OBS_STATE in features else "full"
     return cameras, image_size_of(features, IMAGE_SIZE), state
 
@@ -86,6 +83,7 @@ class MetaWorld:
     state_dims = tuple(STATE_LAYOUTS.values())
     action_dim = ACTION_DIM
     cameras = CAMERAS
+    single_camera = LEROBOT_CAMERA  # what a policy reading LeRobot's observation.image sees
     fps = FPS
     horizon = HORIZON
     eval_seeds = len(seeds.EVAL) // seeds.EVAL_BLOCK
