@@ -57,9 +57,10 @@ from lerobot_cso.policy.configuration_cso import SKILL_START_KEY, SKILL_STEP_KEY
 from lerobot_cso.policy.modeling_cso import CSOPolicy
 from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
-from lerobot_cso.rollout_stage import TrainingStageConfig
+from lerobot_cso.rollout_stage import TrainingStageConfig, policy_features
 from lerobot_cso.sampling import Sampling
 from lerobot_cso.stage import CheckpointStage, without_added_settings
+from lerobot_cso.worlds.base import camera_inputs
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
 BUFFER_FRAMES = ("all", "decisions")
@@ -267,7 +268,7 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
 def buffer_features(
     state_dim: int, action_dim: int, n_tokens: int, image_shapes: dict[str, tuple[int, ...]]
 ) -> dict[str, Any]:
-    """LeRobotDataset features of the success buffer (``image_shapes``: camera -> (H, W, 3))."""
+    """LeRobotDataset features of the success buffer (``image_shapes``: the policy's image input key -> (H, W, 3))."""
     features: dict[str, Any] = {
         "observation.state": {"dtype": "float32", "shape": (state_dim,), "names": None},
         "action": {"dtype": "float32", "shape": (action_dim,), "names": None},
@@ -279,8 +280,8 @@ def buffer_features(
         ATTEMPT_KEY: {"dtype": "int64", "shape": (1,), "names": None},
         TEMPERATURE_KEY: {"dtype": "float32", "shape": (1,), "names": None},
     }
-    for cam, shape in image_shapes.items():
-        features[f"observation.images.{cam}"] = {
+    for key, shape in image_shapes.items():
+        features[key] = {
             "dtype": "image",
             "shape": shape,
             "names": ["height", "width", "channel"],
@@ -289,7 +290,9 @@ def buffer_features(
 
 
 def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: int) -> Path:
-    """Materialise the journal as the success buffer (a LeRobotDataset v3), atomically."""
+    """Materialise the journal as the success buffer (a LeRobotDataset v3), atomically. Its camera frames are
+    stored under the policy's own image input keys (``observation.images.<camera>``, or LeRobot's
+    ``observation.image``), so that the fine-tune reads them as the policy reads its inputs."""
     out = cfg.output_dir / "buffer"
     work = cfg.output_dir / "buffer.tmp"
     shutil.rmtree(work, ignore_errors=True)
@@ -297,7 +300,8 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     world = cfg.rollout_world()
     first = EpisodeJournal.load(files[0])
     cameras = sorted(k.removeprefix("image_") for k in first if k.startswith("image_"))
-    image_shapes = {cam: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
+    keys = {cam: key for key, cam in camera_inputs(policy_features(cfg), world).items()}  # camera -> input key
+    image_shapes = {keys[cam]: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
     dims = first["states"].shape[-1], first["actions"].shape[-1]
     features = buffer_features(*dims, n_tokens, image_shapes)
     ds = LeRobotDataset.create(
@@ -329,7 +333,7 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
                 TEMPERATURE_KEY: np.array([ep["temperature"]], dtype=np.float32),
                 "task": world.task_description(task),
             }
-            frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
+            frame.update({keys[cam]: ep[f"image_{cam}"][t] for cam in cameras})
             ds.add_frame(frame)
         ds.save_episode()
     ds.finalize()
