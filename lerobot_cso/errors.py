@@ -1,13 +1,16 @@
 """Bad user input: ``UsageError``, whose message ``lerobot-cso`` prints as one line before exiting non-zero,
-draccus's parse errors turned into it, and :func:`check_number`, the one check of a numeric setting; and
+draccus's parse errors turned into it (and a cso policy config's refusal made one line in LeRobot's own commands,
+:func:`one_line_policy_refusals`), and :func:`check_number`, the one check of a numeric setting; and
 :func:`check_output_dir` and :func:`check_config_path`; and :func:`interruptible`, which names the work a Ctrl-C
 stopped for that line."""
 
+import functools
 import math
 import operator
 import os
+import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn
@@ -39,14 +42,54 @@ def parse_errors_as_usage_errors() -> Iterator[None]:
         except ParsingError as e:
             raise UsageError(_with_causes(e)) from None
 
+    global _usage_errors_raised
     original, original_parse = SuppressingArgumentParser.error, draccus.parse
     SuppressingArgumentParser.error = error  # type: ignore[method-assign]
     draccus.parse = parse
+    _usage_errors_raised += 1
     try:
         yield
     finally:
         SuppressingArgumentParser.error = original  # type: ignore[method-assign]
         draccus.parse = original_parse
+        _usage_errors_raised -= 1
+
+
+_usage_errors_raised = 0  # how many parse_errors_as_usage_errors blocks are open
+
+
+def policy_refusal(error: BaseException | None) -> str | None:
+    """Why a cso policy config refused its settings (its ``ValueError``), where ``error``, a draccus parse error,
+    ends in that refusal; draccus hides the reason in the chain of errors behind "Couldn't instantiate class"."""
+    while error is not None:
+        cause = error.__cause__ or error.__context__
+        refused = str(error).startswith("Couldn't instantiate class CSOConfig")
+        if isinstance(error, ParsingError) and refused and isinstance(cause, ValueError):
+            return " ".join(str(cause).split())
+        error = cause
+    return None
+
+
+def one_line_policy_refusals(parse: Callable[..., Any]) -> Callable[..., Any]:
+    """``draccus.parse`` whose failure to make a cso policy config (``lerobot-train --policy.type=cso
+    --policy.image_resize=0``) is one ``error: cso policy: <why>`` line and exit code 2, as ``lerobot-cso``'s bad
+    input (inside it: its ``UsageError``), instead of LeRobot's exit code 1 after draccus's "Couldn't instantiate
+    class CSOConfig using the given arguments", which hides which value and why. The cso plugin installs it."""
+
+    @functools.wraps(parse)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return parse(*args, **kwargs)
+        except ParsingError as e:
+            reason = policy_refusal(e)
+            if reason is None:
+                raise
+            if _usage_errors_raised:
+                raise UsageError(f"cso policy: {reason}") from None
+            print(f"error: cso policy: {reason}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+    return wrapped
 
 
 def _with_causes(error: BaseException) -> str:

@@ -3,12 +3,17 @@
 LeRobot imports every installed distribution whose name starts with ``lerobot_policy_`` by that exact
 name. Importing this module registers the ``cso`` policy type and the ``cso_metaworld`` env type, configures
 LIBERO for offline use where it is installed, so that LeRobot's own ``lerobot-eval --env.type=libero`` does not
-stop at LIBERO's interactive set-up questions, and shortens LeRobot's torchcodec probe warning to one line.
+stop at LIBERO's interactive set-up questions, shortens LeRobot's torchcodec probe warning to one line, and makes a
+cso policy setting that the policy refuses one ``error:`` line, exit code 2
+(:func:`~lerobot_cso.errors.one_line_policy_refusals`).
 """
 
 import logging
 import sys
 
+import draccus
+
+from lerobot_cso.errors import one_line_policy_refusals
 from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: F401  (registration on import)
 from lerobot_cso.worlds.libero.setup import configure_if_installed
 from lerobot_cso.worlds.metaworld.env_config import CSOMetaWorldEnvConfig  # noqa: F401  (--env.type=cso_metaworld)
@@ -33,5 +38,6 @@ class OneLineTorchcodecProbe(logging.Filter):
 
 
 configure_if_installed()
+draccus.parse = one_line_policy_refusals(draccus.parse)
 TORCHCODEC_PROBE = OneLineTorchcodecProbe()
 logging.getLogger("lerobot.utils.import_utils").addFilter(TORCHCODEC_PROBE)
