@@ -1,7 +1,9 @@
 """LeRobot's own MetaWorld format as a dataset (issue 33, item 1): a 480² ``corner2`` ``observation.image`` stored as
 video plus the 4-d hand ``observation.state``, trained with the real ``lerobot-train`` (the frames resized inside the
-policy) and rolled out in our MetaWorld world, whose env gives it LeRobot's view of the same camera."""
+policy) and rolled out in our MetaWorld world, whose env gives it LeRobot's view of the same camera; the pipeline's
+dataset check accepts it, R-SFT's buffer holds the policy's own inputs, and ``eval`` films it."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -10,15 +12,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from cso_fakes import TASKS, ScriptedEngine, mixed
+from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.policies.factory import make_pre_post_processors
 from safetensors.torch import load_file
-from tiny_data import TINY_POLICY_ARGS
+from tiny_data import TINY_POLICY_ARGS, TINY_POLICY_KWARGS
 
+from lerobot_cso import cli
 from lerobot_cso.checkpoints import load_policy
-from lerobot_cso.policy import CSOConfig
+from lerobot_cso.cso import rsft
+from lerobot_cso.demos import DemosConfig, check_dataset
+from lerobot_cso.errors import UsageError
+from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.engine import RolloutEngine
-from lerobot_cso.worlds.base import Rollouts
+from lerobot_cso.worlds.base import Rollouts, camera_inputs
 from lerobot_cso.worlds.metaworld.constants import FPS, LEROBOT_CAMERA
 from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv, select_state
 from lerobot_cso.worlds.metaworld.expert import ExpertController
@@ -32,15 +42,15 @@ SIZE = 480  # LeRobot's MetaWorld frames
 RESIZE = 32  # what the tiny policy's encoder reads
 
 
-def make_lerobot_metaworld_dataset(root: Path, episodes: int = 2, length: int = 12) -> LeRobotDataset:
+def make_lerobot_metaworld_dataset(root: Path, episodes: int = 2, length: int = 12, size: int = SIZE) -> LeRobotDataset:
     """Scripted-expert episodes of ``TASK`` written in LeRobot's MetaWorld format by LeRobot's dataset writer."""
     features = {
-        "observation.image": {"dtype": "video", "shape": (SIZE, SIZE, 3), "names": ["height", "width", "channels"]},
+        "observation.image": {"dtype": "video", "shape": (size, size, 3), "names": ["height", "width", "channels"]},
         "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
         "action": {"dtype": "float32", "shape": (4,), "names": None},
     }
     ds = LeRobotDataset.create("local/lerobot_metaworld", FPS, features, root=root, robot_type="sawyer")
-    env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=SIZE)  # the full state: the expert reads it
+    env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=size)  # the full state: the expert reads it
     expert = ExpertController(1, noise_std=0.1)
     for seed in range(episodes):
         obs, _ = env.reset(seed=seed)
@@ -147,3 +157,110 @@ def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_
         first.images[LEROBOT_CAMERA][0].numpy(), env.reset(seed=first.init_seed)[0]["pixels"][LEROBOT_CAMERA]
     )
     env.close()
+
+
+def save_tiny_lerobot_format_policy(path: Path, size: int = 32) -> Path:
+    """A tiny untrained cso policy reading LeRobot's MetaWorld format (``observation.image``, the 4-d state)."""
+    torch.manual_seed(0)
+    config = CSOConfig(
+        **TINY_POLICY_KWARGS,
+        device="cpu",
+        push_to_hub=False,
+        n_autoencoder_steps=0,
+        image_backbone="conv",
+        image_resize=size // 2,
+        tasks=[task_description(t) for t in TASKS],
+        input_features={
+            "observation.image": PolicyFeature(FeatureType.VISUAL, (3, size, size)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
+    )
+    stats = {
+        "observation.image": {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)},
+        "observation.state": {"mean": torch.zeros(4), "std": torch.ones(4)},
+        "action": {"min": -torch.ones(4), "max": torch.ones(4)},
+    }
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    CSOPolicy(config).save_pretrained(path)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def lerobot_format_policy(tmp_path_factory) -> Path:
+    return save_tiny_lerobot_format_policy(tmp_path_factory.mktemp("il") / "pretrained_model")
+
+
+class CameraEngine(ScriptedEngine):
+    """The scripted engine with what our world gives this policy: the 4-d state and LeRobot's ``corner2`` frames,
+    named by the camera (as :class:`RolloutEngine` names them; see the test above)."""
+
+    def episode(self, task: str, seed: int, group: int, sample: int, n_action_steps: int = 8):
+        episode = super().episode(task, seed, group, sample, n_action_steps)
+        frames = np.random.default_rng(seed + sample).integers(0, 256, (episode.length, 32, 32, 3), dtype=np.uint8)
+        return dataclasses.replace(
+            episode, states=episode.states[:, :4], images={LEROBOT_CAMERA: torch.from_numpy(frames)}
+        )
+
+
+def test_the_one_mapping_of_image_inputs_to_cameras():
+    """``observation.images.<camera>`` is that camera in any world; LeRobot's ``observation.image`` is MetaWorld's
+    ``corner2`` and refused, as one line, in a world without a single camera (LIBERO's are named)."""
+    features = {"observation.image": None, "observation.images.topview": None, "observation.state": None}
+    assert camera_inputs(features, MetaWorld()) == {
+        "observation.image": "corner2",
+        "observation.images.topview": "topview",
+    }
+    assert camera_inputs({"observation.images.agentview": None}) == {"observation.images.agentview": "agentview"}
+    with pytest.raises(UsageError, match="observation.image .* shows no camera of libero"):
+        camera_inputs(features, type("Libero", (), {"name": "libero"}))
+
+
+def test_the_pipelines_dataset_check_accepts_lerobots_metaworld_format(tmp_path):
+    """``--demos.dataset_root`` on a dataset in LeRobot's format was refused: camera 'observation.image' unknown."""
+    root = tmp_path / "data"
+    make_lerobot_metaworld_dataset(root, episodes=1, length=2, size=32)
+    tasks, meta = check_dataset(DemosConfig(tasks=TASK, dataset_root=root, repo_id="local/lerobot_metaworld"))
+    assert tasks == [TASK] and meta.camera_keys == ["observation.image"]
+
+
+def test_rsft_buffer_holds_the_policys_own_inputs_and_the_finetune_reads_them(lerobot_format_policy, tmp_path):
+    """The buffer named LeRobot's frames ``observation.images.corner2``, which this policy does not read."""
+    cfg = rsft.RSFTConfig(
+        tasks=",".join(TASKS), output_dir=tmp_path / "rsft", successes_per_task=1, n_strikes=2, epochs=1, batch_size=4
+    )
+    cfg.policy = load_policy(lerobot_format_policy)[0].config
+    cfg.policy.pretrained_path = lerobot_format_policy
+    journal = rsft.Journal(cfg.output_dir / "journal", cfg.spec())
+    rsft.collect(cfg, list(TASKS), CameraEngine(mixed, length=10), journal)
+    buffer = rsft.write_buffer(cfg, list(TASKS), journal, n_tokens=cfg.policy.n_tokens)
+    features = LeRobotDataset("local/cso_rsft_buffer", root=buffer, video_backend="pyav").meta.features
+    assert not [key for key in features if key.startswith("observation.images")]
+    assert tuple(features["observation.image"]["shape"]) == (32, 32, 3)
+    assert tuple(features["observation.state"]["shape"]) == (4,)
+    model = rsft.finetune(cfg, buffer)
+    assert load_policy(model)[0].config.freeze_encoders
+
+
+def test_eval_films_a_policy_reading_lerobots_format(lerobot_format_policy, tmp_path, monkeypatch):
+    """``--video_episodes`` was refused for a policy reading ``observation.image`` ("the policy reads no camera"):
+    its cameras were looked up among its ``observation.images.*`` inputs alone."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    out = tmp_path / "eval"
+    args = [f"--policy.path={lerobot_format_policy}", f"--tasks={TASK}", "--episodes_per_task=1", "--video_episodes=1"]
+    args += ["--max_steps=16", "--num_envs=1", "--vectorization=sync", f"--output_dir={out}"]
+    assert cli.main(["eval", *args]) == 0
+    videos = json.loads((out / "eval.json").read_text())["videos"]
+    assert len(videos) == 1 and Path(videos[0]).parent == out / "videos" / TASK and Path(videos[0]).stat().st_size
+
+
+def test_a_policy_setting_it_refuses_is_one_error_line_and_exit_2_in_lerobot_train(tmp_path):
+    """LeRobot's parser printed draccus's "Couldn't instantiate class CSOConfig", hiding why, and exited 1."""
+    cmd = [str(BIN / "lerobot-train"), "--policy.type=cso", "--policy.image_resize=0", "--dataset.repo_id=local/x"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=300, cwd=tmp_path)
+    errors = [line for line in proc.stderr.splitlines() if "error" in line.lower()]
+    assert proc.returncode == 2 and errors == [
+        "error: cso policy: image_resize must be >= 1 (or null: no resize), got 0"
+    ], proc.stderr[-2000:]
