@@ -36,9 +36,27 @@ def parse_record_config(cfg: RecordConfig) -> RecordConfig:
     return cfg
 
 
+class OneLineTorchcodecProbe(logging.Filter):
+    """LeRobot's warning that torchcodec cannot load (where FFmpeg is missing) is a page of tracebacks at every
+    probe and looks like a crash: one line, said once. (The cso plugin, where installed, shortens it the same way
+    for every LeRobot command; this package must not need it.)"""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.said = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "'torchcodec' is installed but cannot be loaded" not in record.getMessage():
+            return True
+        record.msg, record.args = "torchcodec cannot load here (no FFmpeg it supports): videos decode with pyav", ()
+        said, self.said = self.said, True
+        return not said
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     if argv is not None:
         sys.argv = [PROG, *argv]
+    logging.getLogger("lerobot.utils.import_utils").addFilter(OneLineTorchcodecProbe())
     register_third_party_plugins()
     cfg = parse_record_config()
     if not isinstance(cfg.robot, PiperFollowerConfig):

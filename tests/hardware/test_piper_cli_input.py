@@ -57,3 +57,36 @@ def test_a_kernel_without_socketcan_is_told_to_load_the_can_modules(monkeypatch)
         PiperConnectionError, match="no SocketCAN support loaded: load it with sudo modprobe can can_raw"
     ):
         open_bus("socketcan", "can0", 1_000_000, {})
+
+
+def test_piper_record_says_lerobots_torchcodec_probe_page_in_one_line_without_the_cso_plugin(monkeypatch, caplog):
+    """Issue 35, item 9: with the hardware package alone (no cso plugin to shorten it), ``piper-record`` opened with
+    LeRobot's page of libtorchcodec tracebacks, once per probe, where FFmpeg is missing."""
+    import importlib
+    import logging
+
+    from lerobot.utils.import_utils import get_safe_default_video_backend
+    from lerobot_robot_piper import record_cli
+
+    probe_log = logging.getLogger("lerobot.utils.import_utils")
+    monkeypatch.setattr(probe_log, "filters", [])  # no other plugin's filter in this process
+
+    def no_plugins() -> None:
+        raise SystemExit(0)  # stop after piper-record's own set-up
+
+    monkeypatch.setattr(record_cli, "register_third_party_plugins", no_plugins)
+    with pytest.raises(SystemExit):
+        record_cli.main([])
+    load = importlib.import_module
+
+    def no_ffmpeg(name: str, *args):
+        if name == "torchcodec":
+            raise RuntimeError("Could not load libtorchcodec.\n" + "Traceback (most recent call last):\n" * 30)
+        return load(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", no_ffmpeg)
+    with caplog.at_level(logging.WARNING, logger="lerobot.utils.import_utils"):
+        assert get_safe_default_video_backend() == get_safe_default_video_backend() == "pyav"
+    assert [r.getMessage() for r in caplog.records] == [
+        "torchcodec cannot load here (no FFmpeg it supports): videos decode with pyav"
+    ]
