@@ -15,6 +15,7 @@ periods (36.7 ms at 30 Hz) is a missed tick.
 captures) and each ``select_action`` (two clock reads per call), written to a file at exit. Run:
     OMP_NUM_THREADS=1 ./run.sh python benchmarks/twin_loop_period.py [--duration 60] [--lead 3] [--skip 5]
         [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
+        [--variants sync,background] [--nice N]   (N < 0: the control loop above the emulator, as root)
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int) 
     ]
     try:
         out = subprocess.run(
-            [str(BIN / "python"), "-c", ROLLOUT, *rollout],
+            ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout],
             capture_output=True,
             text=True,
             timeout=args.duration + 240,
@@ -160,17 +161,22 @@ def main() -> None:
     parser.add_argument("--cameras", type=lambda s: s.split(","), default=["front"], help="e.g. front,wrist")
     parser.add_argument("--scene", default="press_button", choices=("press_button", "cube_in_bowl"))
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "metaworld_vision.yaml")
+    parser.add_argument("--nice", type=int, default=0, help="the rollout's niceness (negative: above the emulator's)")
+    parser.add_argument("--variants", default="sync,background", help="sync, background or both")
     args = parser.parse_args()
     settings, side = vision_settings(args.config)
     limit_ms = 1.1 * 1000 / args.fps
     print(f"# command: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '')} python {shlex.join(sys.argv)}")
     views = ",".join(args.cameras)
     print(f"# policy: {args.config.name} il.policy, cameras {views} at {side}x{side}, scene {args.scene}")
+    print(f"# rollout niceness {args.nice}")
     with open("/proc/loadavg") as f:
         print(f"# load average before: {f.read().strip()}")
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
+        background = f"background decode, lead {args.lead}"
+        variants = {"sync": ("synchronous decode", 0), "background": (background, args.lead)}
+        for name, lead in (variants[v] for v in args.variants.split(",")):
             begin = time.monotonic()
             path = home / f"policy_lead{lead}"
             checkpoint = save_camera_policy(path, args.cameras, side, settings, lead, args.weights)
