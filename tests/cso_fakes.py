@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -131,3 +132,16 @@ class ScriptedEngine:
 
     def __exit__(self, *exc: object) -> None:
         pass
+
+
+class TorchWhereCudaIsAvailable:
+    """``torch`` as a module sees it on a GPU machine: ``torch.cuda`` reports a GPU and a 3 GiB peak."""
+
+    cuda = SimpleNamespace(
+        is_available=lambda: True,
+        reset_peak_memory_stats=lambda *args, **kwargs: None,
+        max_memory_allocated=lambda *args, **kwargs: 3 * 1024**3,
+    )
+
+    def __getattr__(self, name: str):
+        return getattr(torch, name)

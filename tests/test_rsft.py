@@ -6,16 +6,16 @@ from __future__ import annotations
 import dataclasses
 import shutil
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from cso_fakes import TASKS, ScriptedEngine, save_tiny_metaworld_policy
+from cso_fakes import TASKS, ScriptedEngine, TorchWhereCudaIsAvailable, save_tiny_metaworld_policy
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.scripts import lerobot_train
 from tiny_data import make_synthetic_dataset
 
+from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft
 from lerobot_cso.errors import UsageError
@@ -184,24 +184,11 @@ def test_finetune_learns_the_stored_tokens_then_freezes_encoders(buffer, collect
     assert any(changed)  # the whole policy was fine-tuned before the freeze
 
 
-class TorchWhereCudaIsAvailable:
-    """``torch`` as a module sees it on a GPU machine: ``torch.cuda`` reports a GPU and a 3 GiB peak."""
-
-    cuda = SimpleNamespace(
-        is_available=lambda: True,
-        reset_peak_memory_stats=lambda *args, **kwargs: None,
-        max_memory_allocated=lambda *args, **kwargs: 3 * 1024**3,
-    )
-
-    def __getattr__(self, name: str):
-        return getattr(torch, name)
-
-
 def test_finetune_runs_where_cuda_is_available(buffer, collected, tmp_path, monkeypatch, capsys):
     """LeRobot's update_policy records the peak GPU memory whenever CUDA is available, whatever the policy's
     device; the fine-tune's tracker must have that meter, as lerobot-train's has (it raised on an H200)."""
     monkeypatch.setattr(lerobot_train, "torch", TorchWhereCudaIsAvailable())
-    monkeypatch.setattr(rsft, "torch", TorchWhereCudaIsAvailable())
+    monkeypatch.setattr(distributed, "torch", TorchWhereCudaIsAvailable())
     cfg = dataclasses.replace(collected[0], output_dir=tmp_path / "out", epochs=1)
     rsft.finetune(cfg, buffer)
     epochs = [line for line in capsys.readouterr().out.splitlines() if line.startswith("R-SFT epoch")]

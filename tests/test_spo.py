@@ -9,8 +9,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
+from cso_fakes import TASKS, ScriptedEngine, TorchWhereCudaIsAvailable, mixed, save_tiny_metaworld_policy
+from lerobot.scripts import lerobot_train
 
+from lerobot_cso import distributed
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import spo
 
@@ -233,3 +235,12 @@ def test_an_objectives_axes_override_its_preset_one_by_one(rsft_policy, tmp_path
     assert group.loss_objective() == Objective(Granularity.SKILL, Advantage.GROUP_MEAN, (0.93, 1.15))
     assert not {"ratio", "advantage"} & set(without_added_settings(cfg.stage_spec()))
     assert without_added_settings(mixed.stage_spec())["ratio"] == "skill"
+
+
+def test_spo_steps_where_cuda_is_available(rsft_policy, tmp_path, monkeypatch):
+    """LeRobot's update_policy records the peak GPU memory whenever CUDA is available, whatever the policy's device:
+    SPO's step tracker must have that meter, as R-SFT's and lerobot-train's have (R-SFT's lacked it on an H200)."""
+    monkeypatch.setattr(lerobot_train, "torch", TorchWhereCudaIsAvailable())
+    monkeypatch.setattr(distributed, "torch", TorchWhereCudaIsAvailable())
+    history = spo.run_spo(make_cfg(rsft_policy, tmp_path, iterations=1), make_engine=engine_factory([]))
+    assert history[0]["updates"] > 0

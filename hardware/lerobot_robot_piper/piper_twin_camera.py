@@ -141,8 +141,7 @@ class PiperTwinCamera(Camera):
             if self._error is not None:
                 raise RuntimeError(f"{self}: the capture thread failed: {self._error!r}") from self._error
             frame = self._frame
-        assert frame is not None  # connect() waited for the first
-        return self._fresh(frame)
+        return self._fresh(frame)  # connect() waited for the first
 
     def disconnect(self) -> None:
         if self._thread is not None:
