@@ -1,0 +1,87 @@
+"""``benchmarks/twin_table5.py`` without running anything: its seeds, the commands of every part, the results file
+(skip, refuse other settings) and the summary it writes (per-task SR, CSO - IL, the operator budget)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def t5():
+    spec = importlib.util.spec_from_file_location("twin_table5", ROOT / "benchmarks" / "twin_table5.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_seeds_of_demos_training_and_evaluation_must_not_overlap(t5, capsys):
+    args = t5.parse_args([])
+    ranges = t5.seed_ranges(args)
+    assert ranges["eval"] == range(100000, 100020)
+    assert ranges["demos"].stop <= ranges["train"].start and ranges["train"].stop <= ranges["eval"].start
+    with pytest.raises(SystemExit):
+        t5.parse_args(["--eval-seed=5010"])  # inside R-SFT's / SPO's scenes
+    assert "overlap the eval seeds" in capsys.readouterr().err
+
+
+def test_each_robot_stage_runs_on_the_in_process_twin_with_its_own_seeds(t5, tmp_path):
+    args = t5.parse_args(["--trials=7"])
+    paths = {p: tmp_path / p for p in ("il_policy", "rsft_policy", "spo_policy", "rsft", "spo", *t5.EVALS)}
+    evaluation = t5.stage_command(args, "cube_in_bowl", "eval_cso", paths)
+    assert evaluation[1:3] == ["eval", f"--policy.path={tmp_path / 'spo_policy'}"]
+    assert "--robot.type=piper_twin_sim" in evaluation and "--operator.type=twin" in evaluation
+    assert "--operator.scene_seed=100000" in evaluation and "--episodes_per_task=7" in evaluation
+    assert "--operator.episode_time_s=20" in evaluation and "--tasks=put the cube in the bowl" in evaluation
+    rsft = t5.stage_command(args, "press_button", "rsft", paths)
+    assert "--operator.scene_seed=5000" in rsft and "--successes_per_task=20" in rsft and "--n_strikes=4" in rsft
+    spo = t5.stage_command(args, "press_button", "spo", paths)
+    assert f"--policy.path={tmp_path / 'rsft_policy'}" in spo and "--group_size=4" in spo
+    il = t5.il_command(args, "press_button", {"il": tmp_path / "il", "demos": tmp_path / "demos"})
+    assert il[1:4] == ["-m", "lerobot_cso.train", "--policy.type=cso"] and "--steps=4000" in il
+
+
+def part(sr: float | None = None, episodes: int = 20, person_s: float = 600.0) -> dict:
+    record = {
+        "wall_s": 10.0,
+        "operator": {"episodes": episodes, "discarded": 0, "episode_s": 1.0, "person_s": person_s},
+    }
+    return record if sr is None else record | {"success_rate": sr}
+
+
+def test_the_summary_gives_cso_minus_il_per_task_and_on_the_mean_of_finished_tasks(t5):
+    results = {"tasks": {}}
+    parts = {"demos": part(), "il": part(episodes=0, person_s=0), "eval_il": part(0.3), "rsft": part()}
+    results["tasks"]["press_button"] = {"parts": parts | {"eval_rsft": part(0.5), "spo": part(), "eval_cso": part(0.6)}}
+    results["tasks"]["cube_in_bowl"] = {"parts": {"demos": part(), "eval_il": part(0.1)}}  # unfinished
+    t5.summarize(results)
+    press = results["tasks"]["press_button"]
+    assert press["sr"] == {"il": 0.3, "rsft": 0.5, "cso": 0.6} and press["cso_minus_il"] == pytest.approx(0.3)
+    assert press["wall_s"] == 70.0 and press["operator"]["hours"]["spo"] == pytest.approx(600 / 3600)
+    assert results["mean"]["tasks"] == ["press_button"] and results["mean"]["cso_minus_il"] == pytest.approx(0.3)
+
+
+def test_the_operator_cost_adds_the_rest_move_and_the_arranging_per_episode(t5):
+    args = t5.parse_args(["--arrange-s=10", "--rest-time-s=3"])
+    cost = t5.operator_cost(args, [4.0, 6.0], extra_s=9.0, extra_n=1)
+    assert cost == {"episodes": 2, "discarded": 1, "episode_s": 19.0, "person_s": 19.0 + 3 * 13.0}
+
+
+def test_a_results_file_of_other_settings_is_refused_and_a_rerun_skips_finished_parts(t5, tmp_path, capsys):
+    path = tmp_path / "results.json"
+    args = t5.parse_args(["--demos=3"])
+    results = t5.load_results(path, t5.config_of(args), "python benchmarks/twin_table5.py --demos=3")
+    results["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
+    t5.save_results(path, results)
+    with pytest.raises(SystemExit, match="other settings"):
+        t5.load_results(path, t5.config_of(t5.parse_args(["--demos=4"])), "x")
+    runtime = t5.parse_args(["--demos=3", "--threads=1", f"--work={tmp_path}"])  # where and how fast: same config
+    assert t5.load_results(path, t5.config_of(runtime), "y")["command"].endswith("; y")
+    t5.main(["--demos=3", "--tasks=press_button", f"--results={path}", f"--work={tmp_path}"])
+    assert capsys.readouterr().out.count("done, skipped") == len(t5.PARTS)
+    assert json.loads(path.read_text())["mean"]["cso_minus_il"] == 0.0
