@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
+
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.policy.background_decode import DECODE_NICENESS, decode_in_background
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.sampling import Sampling
 
@@ -99,3 +104,25 @@ def test_reset_waits_for_and_drops_a_pending_decode():
         assert policy._next_chunk is not None
         policy.reset()
     assert policy._next_chunk is None and not policy._action_queue
+
+
+def _thread_and_niceness(_batch: dict) -> tuple[str, int]:
+    return threading.current_thread().name, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="niceness is per thread on Linux only")
+def test_the_background_decode_runs_on_one_kept_thread_below_the_caller():
+    """Session 26: the tick that started a decode waited for a new thread (``Thread.start``), and the decode then
+    competed with the loop's thread at the same priority; now one kept thread, ``DECODE_NICENESS`` lower."""
+    first = decode_in_background(_thread_and_niceness, {}).result()
+    second = decode_in_background(_thread_and_niceness, {}).result()
+    assert first == second and first[0].startswith("cso-decode")
+    assert first[1] == min(os.nice(0) + DECODE_NICENESS, 19) and DECODE_NICENESS > 0
+
+
+def test_a_background_decode_error_reaches_the_caller():
+    def broken(_batch: dict) -> torch.Tensor:
+        raise RuntimeError("decode failed")
+
+    with pytest.raises(RuntimeError, match="decode failed"):
+        decode_in_background(broken, {}).result()

@@ -1,43 +1,48 @@
-"""One decode running in a background thread, so a control loop keeps ticking while the next skill is sampled."""
+"""The next skill decoded on a background thread, so a control loop keeps ticking while it is sampled."""
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import torch
 from torch import Tensor
 
+# The decode thread's niceness above the caller's (Linux, where niceness is per thread). On the PiPER twin's 30 Hz
+# loop (docs/benchmarks.md, session 26) the late ticks were mostly the ticks that started a decode: the decode
+# took the CPU from the loop's own thread before it had sent its action. At +5 (or +10) 4-9 ticks of ~1 640 were
+# late, against 16-70 at +0; a decode still finishes well within its lead (the loop never waited for one).
+DECODE_NICENESS = 5
+_decoder: tuple[int, ThreadPoolExecutor] | None = None  # the process that made it, and its one decode thread
 
-class BackgroundDecode:
-    """Runs ``decode(batch)`` under ``torch.inference_mode`` in a thread; ``result()`` waits for it.
 
-    Torch kernels release the GIL, so the caller's thread runs on while the decode computes; an exception in
-    the decode is re-raised by ``result()``. The thread is not a daemon: a process that exits while a decode
-    runs waits for it (one skill, well under a second) instead of tearing torch down under it, which aborts
-    the process ("terminate called without an active exception").
+def _below_the_caller() -> None:
+    if sys.platform == "linux":
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(os.nice(0) + DECODE_NICENESS, 19))
+
+
+def _under_inference_mode(decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any]) -> Tensor:
+    with torch.inference_mode():
+        return decode(batch)
+
+
+def decode_in_background(decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any]) -> Future[Tensor]:
+    """``decode(batch)`` under ``torch.inference_mode`` on the process's one decode thread; the future's
+    ``result()`` waits for it and re-raises what it raised.
+
+    The thread is made by the first call and kept, at ``DECODE_NICENESS`` below the caller: handing it a decode
+    is putting it on a queue, so the tick that starts a decode does not wait for a new thread to be scheduled
+    (``Thread.start`` waits until the thread runs: 0.5 ms median, 4-5 ms p99 on the twin's loop). Torch kernels
+    release the GIL, so the caller's thread runs on while the decode computes. At exit the interpreter waits for
+    a decode in progress (``concurrent.futures`` joins its threads) instead of tearing torch down under it, which
+    aborts the process ("terminate called without an active exception").
     """
-
-    def __init__(self, decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any]) -> None:
-        self._decode = decode
-        self._batch = batch
-        self._value: Tensor | None = None
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="cso-decode")
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            with torch.inference_mode():
-                self._value = self._decode(self._batch)
-        except BaseException as error:  # handed to the caller's thread by result()
-            self._error = error
-
-    def result(self) -> Tensor:
-        """The decoded tensor, once the thread has finished."""
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        assert self._value is not None
-        return self._value
+    global _decoder
+    if _decoder is None or _decoder[0] != os.getpid():  # a forked child has the parent's object, not its thread
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cso-decode", initializer=_below_the_caller)
+        _decoder = (os.getpid(), executor)
+    return _decoder[1].submit(_under_inference_mode, decode, batch)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import deque
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from lerobot_cso.policy.background_decode import BackgroundDecode
+from lerobot_cso.policy.background_decode import decode_in_background
 from lerobot_cso.policy.configuration_cso import (
     SKILL_COLUMNS,
     SKILL_START_KEY,
@@ -185,7 +186,7 @@ class CSOPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
-        self._next_chunk: BackgroundDecode | None = getattr(self, "_next_chunk", None)
+        self._next_chunk: Future[Tensor] | None = getattr(self, "_next_chunk", None)
         if self._next_chunk is not None:  # a decode started for the previous episode is waited for, dropped
             self._next_chunk.result()
             self._next_chunk = None
@@ -230,7 +231,7 @@ class CSOPolicy(PreTrainedPolicy):
         action = self._action_queue.popleft()
         lead = self.config.async_decode_lead
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
-            self._next_chunk = BackgroundDecode(self._executed_chunk, batch)
+            self._next_chunk = decode_in_background(self._executed_chunk, batch)
         return action
 
     @property
