@@ -1,7 +1,8 @@
 """LeRobot's own MetaWorld format as a dataset (issue 33, item 1): a 480² ``corner2`` ``observation.image`` stored as
 video plus the 4-d hand ``observation.state``, trained with the real ``lerobot-train`` (the frames resized inside the
 policy) and rolled out in our MetaWorld world, whose env gives it LeRobot's view of the same camera; the pipeline's
-dataset check accepts it, R-SFT's buffer holds the policy's own inputs, and ``eval`` films it."""
+dataset check accepts it, R-SFT's buffer holds the policy's own inputs, ``eval`` films it, and the whole
+``lerobot-cso pipeline`` runs on such a dataset."""
 
 import dataclasses
 import json
@@ -42,26 +43,28 @@ SIZE = 480  # LeRobot's MetaWorld frames
 RESIZE = 32  # what the tiny policy's encoder reads
 
 
-def make_lerobot_metaworld_dataset(root: Path, episodes: int = 2, length: int = 12, size: int = SIZE) -> LeRobotDataset:
-    """Scripted-expert episodes of ``TASK`` written in LeRobot's MetaWorld format by LeRobot's dataset writer."""
+def make_lerobot_metaworld_dataset(
+    root: Path, episodes: int = 2, length: int = 12, size: int = SIZE, task: str = TASK
+) -> LeRobotDataset:
+    """Scripted-expert episodes of ``task`` written in LeRobot's MetaWorld format by LeRobot's dataset writer."""
     features = {
         "observation.image": {"dtype": "video", "shape": (size, size, 3), "names": ["height", "width", "channels"]},
         "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
         "action": {"dtype": "float32", "shape": (4,), "names": None},
     }
     ds = LeRobotDataset.create("local/lerobot_metaworld", FPS, features, root=root, robot_type="sawyer")
-    env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=size)  # the full state: the expert reads it
+    env = CSOMetaWorldEnv(task, cameras=(LEROBOT_CAMERA,), image_size=size)  # the full state: the expert reads it
     expert = ExpertController(1, noise_std=0.1)
     for seed in range(episodes):
         obs, _ = env.reset(seed=seed)
-        expert.start(0, Job(TASK, seed))
+        expert.start(0, Job(task, seed))
         for _ in range(length):
             action = expert.act({"agent_pos": obs["agent_pos"][None]}, np.ones(1, dtype=bool))[0]
             frame = {
                 "observation.image": obs["pixels"][LEROBOT_CAMERA],
                 "observation.state": select_state(obs["agent_pos"], "hand"),
                 "action": action,
-                "task": task_description(TASK),
+                "task": task_description(task),
             }
             ds.add_frame(frame)
             obs, *_ = env.step(action)
@@ -264,3 +267,86 @@ def test_a_policy_setting_it_refuses_is_one_error_line_and_exit_2_in_lerobot_tra
     assert proc.returncode == 2 and errors == [
         "error: cso policy: image_resize must be >= 1 (or null: no resize), got 0"
     ], proc.stderr[-2000:]
+
+
+# The whole pipeline on a dataset in LeRobot's MetaWorld format, 64² frames resized to 32² inside the policy. On
+# drawer-close IL learns to push the drawer shut in 100 steps (a constant push closes it), so R-SFT finds its one
+# success at once; IL closes it in 35-36 steps, so SPO's episodes stop at 35 and sample at T 3: a group is mixed.
+PIPELINE_TASK = "drawer-close-v3"
+PIPELINE_SIZE = 64
+SPO_STEPS = 35
+TINY_PIPELINE = """
+tasks: {task}
+output_dir: {out}
+torch_threads: 1
+il:
+  steps: 100
+  n_autoencoder_steps: 50
+  batch_size: 16
+  num_workers: 0
+  save_freq: 100
+  log_freq: 50
+  policy: {{device: cpu, ae_dim: 32, ae_heads: 2, ae_encoder_layers: 1, ae_decoder_layers: 1, prior_dim: 48,
+           prior_heads: 2, prior_layers: 2, state_embed_dim: 16, image_backbone: conv, image_keypoints: 8,
+           image_embed_dim: 16, image_resize: {resize}, optimizer_lr: 0.001, optimizer_min_lr: 0.0001}}
+eval: {{episodes_per_task: 2, num_envs: 2, vectorization: sync, max_steps: 64}}
+rsft: {{successes_per_task: 1, n_strikes: 4, states_per_round: 1, max_states_per_task: 8, num_envs: 4,
+       vectorization: sync, max_steps: 64, epochs: 1, batch_size: 8}}
+spo: {{iterations: 1, groups_per_iteration: 1, group_size: 4, epochs: 1, minibatch_trajectories: 4, num_envs: 4,
+      vectorization: sync, max_draw_factor: 4, max_steps: {spo_steps}, lr: 0.001, sampling: {{temperature: 3.0}}}}
+"""
+
+
+def model_weights(checkpoint: Path, prefix: str) -> dict[str, torch.Tensor]:
+    return {k: v for k, v in load_file(checkpoint / "model.safetensors").items() if k.startswith(prefix)}
+
+
+@pytest.mark.slow
+def test_the_whole_pipeline_runs_on_a_dataset_in_lerobots_metaworld_format(tmp_path):
+    """``lerobot-cso pipeline --demos.dataset_root=... --demos.repo_id=...`` on LeRobot's format, every stage of it
+    (until now only its dataset check, R-SFT's buffer and eval had run on it, each alone)."""
+    data = tmp_path / "data"
+    make_lerobot_metaworld_dataset(data, episodes=4, length=80, size=PIPELINE_SIZE, task=PIPELINE_TASK)
+    config, run = tmp_path / "pipeline.yaml", tmp_path / "run"
+    config.write_text(TINY_PIPELINE.format(task=PIPELINE_TASK, out=run, resize=RESIZE, spo_steps=SPO_STEPS))
+    cmd = [str(BIN / "lerobot-cso"), "pipeline", f"--config_path={config}"]
+    cmd += [f"--demos.dataset_root={data}", "--demos.repo_id=local/lerobot_metaworld"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+
+    # Every stage ran and completed; the demo stage only checked the given dataset.
+    records = {path.stem: json.loads(path.read_text()) for path in (run / "stages").glob("*.json")}
+    assert set(records) == {"demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso"}
+    assert all(record["complete"] for record in records.values()), records
+    assert not (run / "demos").exists() and records["demos"]["summary"]["total_episodes"] == 4
+    results = json.loads((run / "results.json").read_text())
+    assert set(results["success_rate"]) == {"il", "rsft", "cso"}
+
+    # IL read LeRobot's keys: the corner2 frame as observation.image and the 4-d hand state.
+    il = run / "il" / "checkpoints" / "last" / "pretrained_model"
+    config_json = json.loads((il / "config.json").read_text())
+    assert {k: v["shape"] for k, v in config_json["input_features"].items()} == {
+        "observation.image": [3, PIPELINE_SIZE, PIPELINE_SIZE],
+        "observation.state": [4],
+    }
+    assert config_json["image_resize"] == RESIZE
+
+    # R-SFT's buffer holds the policy's own inputs: rendered frames under observation.image, the 4-d state.
+    buffer = LeRobotDataset("local/cso_rsft_buffer", root=run / "rsft" / "buffer")
+    assert buffer.meta.camera_keys == ["observation.image"] and buffer.num_frames > 0
+    assert not [key for key in buffer.meta.features if key.startswith("observation.images")]
+    frames = torch.stack([buffer[t]["observation.image"] for t in range(0, buffer.num_frames, 8)])
+    assert frames.shape[1:] == (3, PIPELINE_SIZE, PIPELINE_SIZE) and frames.std() > 0.05
+    assert not torch.equal(frames[0], frames[-1])  # the hand moved: every frame rendered, not one repeated
+    assert tuple(buffer.meta.features["observation.state"]["shape"]) == (4,)
+
+    # SPO updated the prior from a mixed group and, with the freeze, left the encoders bit-identical.
+    [iteration] = [json.loads(line) for line in (run / "spo" / "log.jsonl").read_text().splitlines()]
+    assert iteration["updates"] >= 1, iteration
+    rsft_model, spo_model = run / "rsft" / "pretrained_model", run / "spo" / "pretrained_model"
+    assert json.loads((spo_model / "config.json").read_text())["freeze_encoders"]
+    before, after = model_weights(rsft_model, "encoders."), model_weights(spo_model, "encoders.")
+    assert any("observation__image" in k for k in before) and before.keys() == after.keys()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    prior_before, prior_after = model_weights(rsft_model, "prior."), model_weights(spo_model, "prior.")
+    assert prior_before and any(not torch.equal(prior_before[k], v) for k, v in prior_after.items())
