@@ -15,7 +15,7 @@ from torch import Tensor
 # The decode thread's niceness above the caller's (Linux, where niceness is per thread). On the PiPER twin's 30 Hz
 # loop (docs/benchmarks.md, session 26) the late ticks were mostly the ticks that started a decode: the decode
 # took the CPU from the loop's own thread before it had sent its action. Below the loop, p99 met 36.7 ms in 6 of 10
-# runs (2 of ~25 at +0) and 4-29 ticks of ~1 640 were late (13-326 at +0); a decode still finishes within its lead.
+# runs (3 of ~25 at +0) and 4-29 ticks of ~1 640 were late (13-326 at +0); a decode still finishes within its lead.
 DECODE_NICENESS = 5
 _decoder: tuple[int, ThreadPoolExecutor] | None = None  # the process that made it, and its one decode thread
 
