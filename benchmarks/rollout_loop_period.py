@@ -30,24 +30,36 @@ TASK = "hold still"
 BINS_MS = (0, 30, 32, 33, 34, 35, 36.7, 40, 50, 70, 100, 1000, float("inf"))
 
 
-def save_full_size_policy(path: Path, lead: int, weights: str) -> Path:
-    """Default-size untrained cso policy for the PiPER (state and action 7-D), saved with processors."""
+def save_untrained_piper_policy(
+    path: Path,
+    lead: int,
+    weights: str,
+    settings: dict | None = None,
+    cameras: tuple[str, ...] = (),
+    side: int = 0,
+    task: str = TASK,
+) -> Path:
+    """Untrained cso policy for ``task`` on the PiPER (7-D state and action, plus ``cameras`` at ``side`` x
+    ``side``), of the default size or with ``settings`` (CSOConfig fields), saved with its processors."""
     torch.manual_seed(0)
+    images = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, side, side)) for c in cameras}
     config = CSOConfig(
         device="cpu",
         push_to_hub=False,
         n_autoencoder_steps=0,
-        tasks=[TASK],
+        tasks=[task],
         async_decode_lead=lead,
         inference_weights=weights,
-        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,))},
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,)), **images},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        **(settings or {}),
     )
     # Actions stay within ±0.1 rad of home (gripper 0 … 2 cm): the untrained policy only jitters.
     stats = {
         "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
         "action": {"min": torch.tensor([-0.1] * 6 + [0.0]), "max": torch.tensor([0.1] * 6 + [0.02])},
     }
+    stats |= {key: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)} for key in images}
     pre, post = make_pre_post_processors(config, dataset_stats=stats)
     CSOPolicy(config).save_pretrained(path)
     pre.save_pretrained(path)
@@ -112,7 +124,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
         for name, lead in (("synchronous decode", 0), (f"background decode, lead {args.lead}", args.lead)):
-            checkpoint = save_full_size_policy(home / f"policy_lead{lead}", lead, args.weights)
+            checkpoint = save_untrained_piper_policy(home / f"policy_lead{lead}", lead, args.weights)
             report(f"{name} ({args.weights})", loop_periods_ms(checkpoint, home, args.duration, args.fps), limit_ms)
             with open("/proc/loadavg") as f:
                 print(f"# load average after: {f.read().strip()}")

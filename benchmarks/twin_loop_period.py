@@ -31,18 +31,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 import yaml
-from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.policies.factory import make_pre_post_processors
-from rollout_loop_period import report
+from rollout_loop_period import report, save_untrained_piper_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "hardware"))
 from piper_processes import BIN, ChannelRecorder, cli_env, explain, start_emulator  # noqa: E402
 from piper_rig import unique_udp_channel  # noqa: E402
-
-from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: E402
 
 TASK = "press the button"
 CAMERA = "{type: piper_twin, view: %s, width: %d, height: %d, group: %s, port: %d, max_age_s: 1.0}"
@@ -76,34 +71,6 @@ def vision_settings(config: Path) -> tuple[dict, int]:
         cfg = yaml.safe_load(f)
     policy = {k: v for k, v in cfg["il"]["policy"].items() if k != "device"}
     return policy, int(cfg["demos"]["image_size"])
-
-
-def save_camera_policy(path: Path, cameras: list[str], side: int, settings: dict, lead: int, weights: str) -> Path:
-    """Untrained cso camera policy for the PiPER (images of ``cameras``, state and action 7-D), with processors."""
-    torch.manual_seed(0)
-    images = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, side, side)) for c in cameras}
-    config = CSOConfig(
-        device="cpu",
-        push_to_hub=False,
-        n_autoencoder_steps=0,
-        tasks=[TASK],
-        async_decode_lead=lead,
-        inference_weights=weights,
-        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,)), **images},
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-        **settings,
-    )
-    # Actions stay within ±0.1 rad of home (gripper 0 … 2 cm): the untrained policy only jitters.
-    stats = {
-        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
-        "action": {"min": torch.tensor([-0.1] * 6 + [0.0]), "max": torch.tensor([0.1] * 6 + [0.02])},
-    }
-    stats |= {key: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)} for key in images}
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    CSOPolicy(config).save_pretrained(path)
-    pre.save_pretrained(path)
-    post.save_pretrained(path)
-    return path
 
 
 def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int) -> tuple[np.ndarray, dict]:
@@ -179,7 +146,9 @@ def main() -> None:
         for name, lead in (variants[v] for v in args.variants.split(",")):
             begin = time.monotonic()
             path = home / f"policy_lead{lead}"
-            checkpoint = save_camera_policy(path, args.cameras, side, settings, lead, args.weights)
+            checkpoint = save_untrained_piper_policy(
+                path, lead, args.weights, settings, tuple(args.cameras), side, TASK
+            )
             periods, calls = loop_run(checkpoint, home, args, side)
             report(f"{name} ({args.weights})", periods, limit_ms)
             for call, ms in sorted(calls.items()):
