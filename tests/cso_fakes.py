@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
+from safetensors.torch import load_file
 from tiny_data import TINY_POLICY_KWARGS
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
@@ -145,3 +146,8 @@ class TorchWhereCudaIsAvailable:
 
     def __getattr__(self, name: str):
         return getattr(torch, name)
+
+
+def saved_weights(checkpoint: Path, prefix: str) -> dict[str, torch.Tensor]:
+    """The tensors of a saved policy's ``model.safetensors`` whose names start with ``prefix``."""
+    return {k: v for k, v in load_file(checkpoint / "model.safetensors").items() if k.startswith(prefix)}

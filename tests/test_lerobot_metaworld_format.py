@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from cso_fakes import TASKS, ScriptedEngine, mixed
+from cso_fakes import TASKS, ScriptedEngine, mixed, saved_weights
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_pre_post_processors
@@ -297,10 +297,6 @@ spo: {{iterations: 1, groups_per_iteration: 1, group_size: 4, epochs: 1, minibat
 """
 
 
-def model_weights(checkpoint: Path, prefix: str) -> dict[str, torch.Tensor]:
-    return {k: v for k, v in load_file(checkpoint / "model.safetensors").items() if k.startswith(prefix)}
-
-
 @pytest.mark.slow
 def test_the_whole_pipeline_runs_on_a_dataset_in_lerobots_metaworld_format(tmp_path):
     """``lerobot-cso pipeline --demos.dataset_root=... --demos.repo_id=...`` on LeRobot's format, every stage of it
@@ -345,8 +341,8 @@ def test_the_whole_pipeline_runs_on_a_dataset_in_lerobots_metaworld_format(tmp_p
     assert iteration["updates"] >= 1, iteration
     rsft_model, spo_model = run / "rsft" / "pretrained_model", run / "spo" / "pretrained_model"
     assert json.loads((spo_model / "config.json").read_text())["freeze_encoders"]
-    before, after = model_weights(rsft_model, "encoders."), model_weights(spo_model, "encoders.")
+    before, after = saved_weights(rsft_model, "encoders."), saved_weights(spo_model, "encoders.")
     assert any("observation__image" in k for k in before) and before.keys() == after.keys()
     assert all(torch.equal(before[k], after[k]) for k in before)
-    prior_before, prior_after = model_weights(rsft_model, "prior."), model_weights(spo_model, "prior.")
+    prior_before, prior_after = saved_weights(rsft_model, "prior."), saved_weights(spo_model, "prior.")
     assert prior_before and any(not torch.equal(prior_before[k], v) for k, v in prior_after.items())

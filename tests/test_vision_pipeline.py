@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from cso_fakes import saved_weights
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import load_file
 
@@ -55,11 +56,6 @@ SPO_CLI = {  # the pipeline's SPO section above, as command-line flags
 }
 
 
-def encoder_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
-    weights = load_file(checkpoint / "model.safetensors")
-    return {k: v for k, v in weights.items() if k.startswith("encoders.")}
-
-
 def test_camera_demos_train_refine_and_evaluate_with_videos(tmp_path):
     config = tmp_path / "vision.yaml"
     config.write_text(TINY_VISION.format(out=tmp_path / "run", spo_steps=SPO_STEPS))
@@ -92,8 +88,8 @@ def test_camera_demos_train_refine_and_evaluate_with_videos(tmp_path):
 
     # With the freeze (Algorithm 1, line 11), SPO leaves the encoders bit-identical while it moves the prior.
     rsft_encoders, spo_encoders = (
-        encoder_weights(run / "rsft" / "pretrained_model"),
-        encoder_weights(run / "spo" / "pretrained_model"),
+        saved_weights(run / "rsft" / "pretrained_model", "encoders."),
+        saved_weights(run / "spo" / "pretrained_model", "encoders."),
     )
     assert any("images" in k for k in rsft_encoders)
     assert rsft_encoders.keys() == spo_encoders.keys()
@@ -114,7 +110,7 @@ def test_camera_demos_train_refine_and_evaluate_with_videos(tmp_path):
     ]
     proc = subprocess.run(spo, capture_output=True, text=True, env=ENV, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    moved = encoder_weights(unfrozen / "pretrained_model")
+    moved = saved_weights(unfrozen / "pretrained_model", "encoders.")
     assert any(not torch.equal(rsft_encoders[k], moved[k]) for k in rsft_encoders)
     assert not json.loads((unfrozen / "pretrained_model" / "config.json").read_text())["freeze_encoders"]
 
