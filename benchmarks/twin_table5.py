@@ -17,7 +17,7 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
    ``--demo-seed`` + k (+ the re-recorded ones before it).
 2. ``il``: ``python -m lerobot_cso.train`` (``lerobot-train --policy.type=cso``, frames served from memory) on the
    demos: the camera benchmark's policy (configs/metaworld_vision.yaml: conv encoder, 4 px random shift) on 64x64
-   front and wrist cameras and the 7 joint values.
+   front and wrist cameras and the 7 joint values; ``--ae-dim`` and ``--image-shift`` change two of its fields.
 3. ``eval_il``, ``rsft``, ``eval_rsft``, ``spo``, ``eval_cso``: ``lerobot-cso eval|rsft|spo`` on
    ``--robot.type=piper_twin_sim`` (faster than real time) labelled by ``--operator.type=twin``, with the budgets of
    configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise. R-SFT and SPO place their scenes
@@ -90,6 +90,8 @@ PARTS = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")
 EVALS = {"eval_il": "il", "eval_rsft": "rsft", "eval_cso": "cso"}
 # Settings that do not change the results (where things run, how fast); the rest are the results' config.
 RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after")
+# Flags that set a field of POLICY: the results' config holds them inside its "policy" entry.
+POLICY_FLAGS = {"ae_dim": "ae_dim", "image_shift": "image_shift"}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -125,6 +127,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     a("--il-ae-steps", type=int, default=1000, help="of --il-steps, the autoencoder's; the rest the prior's")
     a("--il-batch", type=int, default=64)
     a("--il-seed", type=int, default=1000)
+    a("--ae-dim", type=int, default=POLICY["ae_dim"], help="the skill autoencoder's width")
+    a("--image-shift", type=int, default=POLICY["image_shift"], help="random-shift augmentation of the images, pixels")
     # robot stages
     a("--episode-s", type=str, default="press_button=10,cube_in_bowl=20", help="the policy's time limit per episode")
     a("--rsft-successes", type=int, default=20)
@@ -200,8 +204,13 @@ def check_seeds(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
 def config_of(args: argparse.Namespace) -> dict[str, Any]:
     """The settings the results depend on."""
-    cfg = {k: v for k, v in vars(args).items() if k not in RUNTIME}
-    return json.loads(json.dumps(cfg | {"policy": POLICY}))
+    cfg = {k: v for k, v in vars(args).items() if k not in RUNTIME and k not in POLICY_FLAGS}
+    return json.loads(json.dumps(cfg | {"policy": policy_of(args)}))
+
+
+def policy_of(args: argparse.Namespace) -> dict[str, Any]:
+    """POLICY with the fields its flags set."""
+    return POLICY | {field: getattr(args, flag) for flag, field in POLICY_FLAGS.items()}
 
 
 # ---------------------------------------------------------------------------------------------------- results
@@ -372,7 +381,7 @@ def il_command(args: argparse.Namespace, task: str, paths: dict[str, Path]) -> l
     last = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     if last.is_file():
         return [sys.executable, "-m", "lerobot_cso.train", "--resume=true", f"--config_path={last}", *common]
-    policy = [f"--policy.{k}={v}" for k, v in POLICY.items()]
+    policy = [f"--policy.{k}={v}" for k, v in policy_of(args).items()]
     return [
         sys.executable, "-m", "lerobot_cso.train", "--policy.type=cso", *common, f"--batch_size={args.il_batch}",
         f"--save_freq={min(1000, args.il_steps)}", f"--log_freq={min(200, args.il_steps)}", f"--seed={args.il_seed}",

@@ -85,3 +85,14 @@ def test_a_results_file_of_other_settings_is_refused_and_a_rerun_skips_finished_
     t5.main(["--demos=3", "--tasks=press_button", f"--results={path}", f"--work={tmp_path}"])
     assert capsys.readouterr().out.count("done, skipped") == len(t5.PARTS)
     assert json.loads(path.read_text())["mean"]["cso_minus_il"] == 0.0
+
+
+def test_the_policy_flags_reach_the_il_command_and_the_policy_entry_of_the_config(t5, tmp_path):
+    default = t5.config_of(t5.parse_args([]))
+    assert default["policy"] == t5.POLICY and "ae_dim" not in default  # older results files stay valid
+    args = t5.parse_args(["--ae-dim=192", "--image-shift=0"])
+    assert t5.config_of(args)["policy"] == t5.POLICY | {"ae_dim": 192, "image_shift": 0}
+    paths = {"il": tmp_path / "il", "demos": tmp_path / "demos"}
+    command = t5.il_command(args, "cube_in_bowl", paths)
+    assert "--policy.ae_dim=192" in command and "--policy.image_shift=0" in command
+    assert "--policy.ae_dim=96" not in command
