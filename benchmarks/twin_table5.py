@@ -90,8 +90,8 @@ PARTS = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")
 EVALS = {"eval_il": "il", "eval_rsft": "rsft", "eval_cso": "cso"}
 # Settings that do not change the results (where things run, how fast); the rest are the results' config.
 RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after")
-# Flags that set a field of POLICY: the results' config holds them inside its "policy" entry.
-POLICY_FLAGS = {"ae_dim": "ae_dim", "image_shift": "image_shift"}
+# Flags named after the POLICY field they set: the results' config holds them inside its "policy" entry.
+POLICY_FLAGS = ("ae_dim", "image_shift")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -210,7 +210,7 @@ def config_of(args: argparse.Namespace) -> dict[str, Any]:
 
 def policy_of(args: argparse.Namespace) -> dict[str, Any]:
     """POLICY with the fields its flags set."""
-    return POLICY | {field: getattr(args, flag) for flag, field in POLICY_FLAGS.items()}
+    return POLICY | {field: getattr(args, field) for field in POLICY_FLAGS}
 
 
 # ---------------------------------------------------------------------------------------------------- results
