@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -46,7 +47,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--fps", type=int, default=10)
     p.add_argument("--rest-time-s", type=float, default=3.0)
     p.add_argument("--out", type=Path, default=None, help="write the results here as JSON")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.episodes < 1 or args.fps < 1:
+        p.error(f"--episodes and --fps must be >= 1, got {args.episodes} and {args.fps}")
+    if not 0 <= args.rest_time_s < float("inf"):
+        p.error(f"--rest-time-s must be a finite number >= 0, got {args.rest_time_s}")
+    if not (args.work / "demos_attempts.jsonl").is_file() or not (args.work / "demos").is_dir():
+        p.error(f"--work={args.work} holds no demos/ and demos_attempts.jsonl (a task folder of twin_table5.py)")
+    if args.out is not None and not os.access(args.out.parent, os.W_OK):
+        p.error(f"--out={args.out}: its folder does not exist or is not writable")
+    return args
 
 
 class Reconstruction:

@@ -165,6 +165,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.episode_s = per_task(p, "--episode-s", args.episode_s)
     if not 0 <= args.il_ae_steps < args.il_steps:
         p.error("--il-ae-steps must be in [0, --il-steps)")
+    if args.ae_dim < 1 or args.ae_dim % POLICY["ae_heads"]:
+        p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
+    if args.image_shift < 0:
+        p.error(f"--image-shift must be >= 0, got {args.image_shift}")
     check_seeds(p, args)
     return args
 

@@ -96,3 +96,6 @@ def test_the_policy_flags_reach_the_il_command_and_the_policy_entry_of_the_confi
     command = t5.il_command(args, "cube_in_bowl", paths)
     assert "--policy.ae_dim=192" in command and "--policy.image_shift=0" in command
     assert "--policy.ae_dim=96" not in command
+    for bad in ("--ae-dim=0", "--ae-dim=97", "--image-shift=-1"):
+        with pytest.raises(SystemExit):
+            t5.parse_args([bad])
