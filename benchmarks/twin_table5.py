@@ -20,22 +20,25 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
    front and wrist cameras and the 7 joint values; ``--ae-dim`` and ``--image-shift`` change two of its fields.
 3. ``eval_il``, ``rsft``, ``eval_rsft``, ``spo``, ``eval_cso``: ``lerobot-cso eval|rsft|spo`` on
    ``--robot.type=piper_twin_sim`` (faster than real time) labelled by ``--operator.type=twin``, with the budgets of
-   configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise. R-SFT and SPO place their scenes
-   from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i (trial i): disjoint from each other and from the
-   demonstrations' seeds (checked).
+   configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise (``--spo-clip``,
+   ``--spo-state-pool`` and ``--spo-skip-uniform-for`` give SPO the camera benchmark's trust region and state
+   pool). R-SFT and SPO place their scenes from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i
+   (trial i): disjoint from each other and from the demonstrations' seeds (checked).
 
 ``--record-on=sim`` records on ``piper_twin_sim`` instead (the same ``lerobot-record`` loop, paced in real time, but
 the twin on simulated time: a starved or paused process records the same demonstration), for a machine too busy
 for the real-time emulator.
 
-Every finished part is written at once to ``--results`` (default ``benchmarks/results/twin_table5.json``) with its
-wall time and its episodes; a rerun skips the finished parts and resumes an unfinished one from its own output
-(``lerobot-record --resume``, ``lerobot-train --resume``, the robot stages' journals). A results file made with
-other settings is refused. An R-SFT that finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states``
-scenes is recorded as failed (no SPO, no CSO for that task at this budget). The operator-equivalent cost of each
-part: its episodes, their length on the twin (its time is the real arm's time), and what a person would spend at
-the arm: the episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an assumption: placing the
-objects by hand; the twin does it instantly). The defaults and their measured costs: docs/real-arm.md.
+Every finished part is written at once to ``--results`` (default ``benchmarks/results/twin_table5.json``) with its wall
+time and its episodes; a rerun skips the finished parts and resumes an unfinished one from its own output
+(``lerobot-record --resume``, ``lerobot-train --resume``, the robot stages' journals). A results file made with other
+settings is refused, but ``--reuse=<results> --reuse-work=<work>`` starts each task from a copy of the parts of another
+run that its differing settings do not change (e.g. a larger SPO budget from the same IL and R-SFT; the copied records
+say ``reused_from``). An R-SFT that finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states`` scenes is
+recorded as failed (no SPO, no CSO for that task at this budget). The operator-equivalent cost of each part: its
+episodes, their length on the twin (its time is the real arm's time), and what a person would spend at the arm: the
+episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an assumption: placing the objects by hand; the
+twin does it instantly). The defaults and their measured costs: docs/real-arm.md.
 
     python benchmarks/twin_table5.py                      # the full run (defaults), ~1.5 h on a free 2-core VM
     python benchmarks/twin_table5.py --dry-run            # the commands of the parts still to run
@@ -89,9 +92,23 @@ POLICY = {
 PARTS = ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso")
 EVALS = {"eval_il": "il", "eval_rsft": "rsft", "eval_cso": "cso"}
 # Settings that do not change the results (where things run, how fast); the rest are the results' config.
-RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after")
+RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after", "reuse", "reuse_work")
 # Flags named after the POLICY field they set: the results' config holds them inside its "policy" entry.
 POLICY_FLAGS = ("ae_dim", "image_shift")
+# SPO flags added after results were first written: the config holds them only when they differ from these defaults
+# (which are SPO's own), so older results files stay valid.
+SPO_OPTIONAL = {"spo_clip": None, "spo_state_pool": None, "spo_skip_uniform_for": 0}
+# The first part each setting changes (a setting not named here changes every part, from the demos on): what
+# --reuse may copy from a results file of other settings is every part before the first one a differing setting
+# changes.
+FIRST_PART = {
+    **dict.fromkeys(("il_steps", "il_ae_steps", "il_batch", "il_seed", "policy"), "il"),
+    **dict.fromkeys(("episode_s", "trials", "eval_seed"), "eval_il"),
+    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states", "rsft_epochs"), "rsft"),
+    **dict.fromkeys(("rsft_batch", "train_seed"), "rsft"),
+    **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), "spo"),
+    **dict.fromkeys(("spo_minibatch", "spo_lr", *SPO_OPTIONAL), "spo"),
+}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -144,11 +161,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     a("--spo-epochs", type=int, default=4)
     a("--spo-minibatch", type=int, default=24)
     a("--spo-lr", type=float, default=1e-4)
+    a("--spo-clip", default=None, help="low,high: the ratio's clip range (default: the skill objective's)")
+    a("--spo-state-pool", type=int, default=None, help="SPO's state_pool: draw from this many scenes, cycling")
+    a("--spo-skip-uniform-for", type=int, default=0, help="SPO's skip_uniform_for (with --spo-state-pool)")
     a("--trials", type=int, default=20, help="evaluation trials per checkpoint and task (Table 5: 20)")
     a("--demo-seed", type=int, default=0, help="demo k: seed demo_seed + k (re-recorded ones take the next)")
     a("--train-seed", type=int, default=5000, help="R-SFT's and SPO's state i: seed train_seed + i")
     a("--eval-seed", type=int, default=100000, help="trial i: seed eval_seed + i")
     a("--arrange-s", type=float, default=10.0, help="a person's time to place the objects (operator cost only)")
+    a(
+        "--reuse",
+        type=Path,
+        default=None,
+        help="a results file of other settings: a task not yet in --results starts with a copy of its parts that "
+        "come before the first part a differing setting changes (their folders copied from --reuse-work)",
+    )
+    a("--reuse-work", type=Path, default=None, help="the --work of the --reuse run")
     args = p.parse_args(argv)
     args.tasks = [t for t in args.tasks.split(",") if t]
     unknown = [t for t in args.tasks if t not in TASKS]
@@ -169,6 +197,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
     if args.image_shift < 0:
         p.error(f"--image-shift must be >= 0, got {args.image_shift}")
+    if args.spo_clip is not None:
+        try:
+            low, high = (float(v) for v in args.spo_clip.split(","))
+        except ValueError:
+            p.error(f"--spo-clip: expected low,high, got {args.spo_clip!r}")
+        if not 0 < low <= 1 <= high:
+            p.error(f"--spo-clip: expected 0 < low <= 1 <= high, got {args.spo_clip!r}")
+        args.spo_clip = [low, high]
+    if args.spo_state_pool is not None and args.spo_state_pool < 1:
+        p.error(f"--spo-state-pool must be >= 1, got {args.spo_state_pool}")
+    if args.spo_skip_uniform_for < 0:
+        p.error(f"--spo-skip-uniform-for must be >= 0, got {args.spo_skip_uniform_for}")
+    if (args.reuse is None) != (args.reuse_work is None):
+        p.error("--reuse and --reuse-work go together")
+    if args.reuse is not None and not args.reuse.is_file():
+        p.error(f"--reuse: no results file at {args.reuse}")
     check_seeds(p, args)
     return args
 
@@ -190,7 +234,7 @@ def per_task(p: argparse.ArgumentParser, flag: str, text: str) -> dict[str, floa
 def seed_ranges(args: argparse.Namespace) -> dict[str, range]:
     """The scene seeds each use may draw (upper bounds): the demos with every re-record allowed, R-SFT's states,
     SPO's groups with every redraw, the trials."""
-    spo = args.spo_iterations * args.spo_groups * args.spo_draw_factor
+    spo = args.spo_state_pool or args.spo_iterations * args.spo_groups * args.spo_draw_factor
     return {
         "demos": range(args.demo_seed, args.demo_seed + 2 * args.demos + 1),
         "train": range(args.train_seed, args.train_seed + max(args.rsft_max_states, spo)),
@@ -208,7 +252,11 @@ def check_seeds(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
 def config_of(args: argparse.Namespace) -> dict[str, Any]:
     """The settings the results depend on."""
-    cfg = {k: v for k, v in vars(args).items() if k not in RUNTIME and k not in POLICY_FLAGS}
+    cfg = {
+        k: v
+        for k, v in vars(args).items()
+        if k not in RUNTIME and k not in POLICY_FLAGS and not (k in SPO_OPTIONAL and v == SPO_OPTIONAL[k])
+    }
     return json.loads(json.dumps(cfg | {"policy": policy_of(args)}))
 
 
@@ -232,6 +280,48 @@ def load_results(path: Path, config: dict[str, Any], command: str) -> dict[str, 
             results["command"] += "; " + command
         return results
     return {"config": config, "command": command, "tasks": {}}
+
+
+def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> list[str]:
+    """The finished parts of ``task`` in results ``other`` that ``config`` would compute the same: those before the
+    first part a differing setting changes (FIRST_PART; an unknown setting changes them all)."""
+    theirs = other["config"]
+    differ = [k for k in config.keys() | theirs.keys() if config.get(k) != theirs.get(k)]
+    first = min((PARTS.index(FIRST_PART.get(k, PARTS[0])) for k in differ), default=len(PARTS))
+    done = other["tasks"].get(task, {}).get("parts", {})
+    reusable = []
+    for part in PARTS[:first]:
+        if part not in done or "failed" in done[part]:
+            break
+        reusable.append(part)
+    return reusable
+
+
+def reuse(args: argparse.Namespace, config: dict[str, Any], task: str, entry: dict[str, Any], base: Path) -> None:
+    """Start ``task`` from copies of the reusable parts of ``--reuse``: their folders from ``--reuse-work`` (copied
+    under a temporary name, then renamed, so an interrupted copy is redone), then their records."""
+    other = json.loads(args.reuse.read_text())
+    parts = reusable_parts(config, other, task)
+    for part in parts:
+        names = ["demos", "demos_attempts.jsonl"] if part == "demos" else [part]
+        for name in names:
+            source, target = args.reuse_work / task / name, base / name
+            if not source.exists():
+                raise SystemExit(f"error: --reuse-work has no {source} for the reused part {task} {part}")
+            tmp = target.with_name(target.name + ".copying")
+            for stale in (tmp, target):
+                if stale.is_dir():
+                    shutil.rmtree(stale)
+                else:
+                    stale.unlink(missing_ok=True)
+            if source.is_dir():
+                shutil.copytree(source, tmp)
+            else:
+                shutil.copy2(source, tmp)
+            os.replace(tmp, target)
+    for part in parts:
+        entry["parts"][part] = other["tasks"][task]["parts"][part] | {"reused_from": str(args.reuse)}
+    print(f"[twin_table5] {task}: reused {', '.join(parts) or 'nothing'} from {args.reuse}", flush=True)
 
 
 def save_results(path: Path, results: dict[str, Any]) -> None:
@@ -368,6 +458,9 @@ def stage_command(args: argparse.Namespace, task: str, part: str, paths: dict[st
         f"--group_size={args.spo_k}", f"--epochs={args.spo_epochs}",
         f"--minibatch_trajectories={args.spo_minibatch}", f"--max_draw_factor={args.spo_draw_factor}",
         f"--lr={args.spo_lr:g}", f"--train_threads={args.threads}",
+        *([f"--clip_low={args.spo_clip[0]:g}", f"--clip_high={args.spo_clip[1]:g}"] if args.spo_clip else []),
+        *([f"--state_pool={args.spo_state_pool}"] if args.spo_state_pool else []),
+        *([f"--skip_uniform_for={args.spo_skip_uniform_for}"] if args.spo_skip_uniform_for else []),
     ]  # fmt: skip
 
 
@@ -588,6 +681,9 @@ def run_task(args: argparse.Namespace, task: str, results: dict[str, Any], path:
     log = base / "log.txt"
     base.mkdir(parents=True, exist_ok=True)
     entry = results["tasks"].setdefault(task, {"parts": {}})
+    if args.reuse is not None and not entry["parts"] and not args.dry_run:
+        reuse(args, results["config"], task, entry, base)
+        save_results(path, results)
     for part in PARTS:
         if "failed" in entry["parts"].get("rsft", {}):
             print(

@@ -99,3 +99,59 @@ def test_the_policy_flags_reach_the_il_command_and_the_policy_entry_of_the_confi
     for bad in ("--ae-dim=0", "--ae-dim=97", "--image-shift=-1"):
         with pytest.raises(SystemExit):
             t5.parse_args([bad])
+
+
+def test_the_spo_flags_reach_the_spo_command_and_the_config_only_when_set(t5, tmp_path, capsys):
+    paths = {"rsft_policy": tmp_path / "rsft_policy", "spo": tmp_path / "spo"}
+    default = t5.parse_args([])
+    assert not t5.SPO_OPTIONAL.keys() & t5.config_of(default).keys()  # older results files stay valid
+    assert not [a for a in t5.stage_command(default, "press_button", "spo", paths) if "clip" in a or "pool" in a]
+    args = t5.parse_args(["--spo-clip=0.8,1.2", "--spo-state-pool=32", "--spo-skip-uniform-for=3"])
+    spo = t5.stage_command(args, "press_button", "spo", paths)
+    assert {"--clip_low=0.8", "--clip_high=1.2", "--state_pool=32", "--skip_uniform_for=3"} <= set(spo)
+    assert t5.config_of(args)["spo_clip"] == [0.8, 1.2] and t5.seed_ranges(args)["train"] == range(5000, 5040)
+    for bad in ("--spo-clip=1.2,0.8", "--spo-clip=0.8", "--spo-state-pool=0", "--spo-skip-uniform-for=-1"):
+        with pytest.raises(SystemExit):
+            t5.parse_args([bad])
+        assert capsys.readouterr().err.splitlines()[-1].split(": error: ")[1].startswith("--spo-")
+
+
+def test_reuse_copies_the_parts_before_the_first_one_a_differing_setting_changes(t5, tmp_path):
+    old_args = t5.parse_args(["--demos=3"])
+    old = {"config": t5.config_of(old_args), "command": "x", "tasks": {}}
+    old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
+    old_work = tmp_path / "old" / "press_button"
+    for name in ("demos", "il", "eval_il", "rsft", "eval_rsft", "spo", "eval_cso"):
+        (old_work / name).mkdir(parents=True)
+        (old_work / name / "made_by").write_text(name)
+    (old_work / "demos_attempts.jsonl").write_text("{}\n")
+    old_path = tmp_path / "old.json"
+    t5.save_results(old_path, old)
+
+    def reused(*flags: str) -> list[str]:
+        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")
+
+    assert reused() == list(t5.PARTS)
+    assert reused("--spo-k=8") == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
+    assert reused("--spo-clip=0.8,1.2") == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
+    assert reused("--rsft-epochs=5") == ["demos", "il", "eval_il"]
+    assert reused("--trials=50") == ["demos", "il"] and reused("--ae-dim=192") == ["demos"]
+    assert reused("--fps=5") == [] and reused("--arrange-s=5") == []  # a setting the demos depend on
+    old["tasks"]["press_button"]["parts"]["rsft"]["failed"] = "too few successes"
+    assert reused("--spo-k=8") == ["demos", "il", "eval_il"]  # a failed part is run again, not copied
+    del old["tasks"]["press_button"]["parts"]["rsft"]["failed"]
+
+    new_work, new_path = tmp_path / "new", tmp_path / "new.json"
+    (new_work / "press_button" / "spo.copying").mkdir(parents=True)  # an interrupted copy is redone
+    flags = ["--demos=3", "--spo-k=8", f"--reuse={old_path}", f"--reuse-work={tmp_path / 'old'}"]
+    args = t5.parse_args([*flags, f"--work={new_work}", f"--results={new_path}", "--stop-after=eval_rsft"])
+    t5.main([*flags, f"--work={new_work}", f"--results={new_path}", "--tasks=press_button", "--stop-after=eval_rsft"])
+    parts = json.loads(new_path.read_text())["tasks"]["press_button"]["parts"]
+    assert list(parts) == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
+    assert parts["eval_il"]["success_rate"] == 0.5 and parts["rsft"]["reused_from"] == str(old_path)
+    copied = sorted(p.name for p in (new_work / "press_button").iterdir() if p.name != "log.txt")
+    assert copied == ["demos", "demos_attempts.jsonl", "eval_il", "eval_rsft", "il", "rsft", "spo.copying"]
+    assert (new_work / "press_button" / "rsft" / "made_by").read_text() == "rsft"
+    assert t5.config_of(args) == json.loads(new_path.read_text())["config"]
+    with pytest.raises(SystemExit):
+        t5.parse_args([f"--reuse={old_path}"])  # without --reuse-work
