@@ -98,17 +98,19 @@ POLICY_FLAGS = ("ae_dim", "image_shift")
 # SPO flags added after results were first written: the config holds them only when they differ from these defaults
 # (which are SPO's own), so older results files stay valid.
 SPO_OPTIONAL = {"spo_clip": None, "spo_state_pool": None, "spo_skip_uniform_for": 0}
-# The first part each setting changes (a setting not named here changes every part, from the demos on): what
-# --reuse may copy from a results file of other settings is every part before the first one a differing setting
-# changes.
-FIRST_PART = {
-    **dict.fromkeys(("il_steps", "il_ae_steps", "il_batch", "il_seed", "policy"), "il"),
-    **dict.fromkeys(("episode_s", "trials", "eval_seed"), "eval_il"),
-    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states", "rsft_epochs"), "rsft"),
-    **dict.fromkeys(("rsft_batch", "train_seed"), "rsft"),
-    **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), "spo"),
-    **dict.fromkeys(("spo_minibatch", "spo_lr", *SPO_OPTIONAL), "spo"),
+# The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
+# also changes when the part it starts from (INPUT) does. What --reuse may copy from a results file of other
+# settings is every part that no differing setting changes.
+CHANGES = {
+    **dict.fromkeys(("il_steps", "il_ae_steps", "il_batch", "il_seed", "policy"), ("il",)),
+    "episode_s": ("eval_il", "rsft", "eval_rsft", "spo", "eval_cso"),
+    **dict.fromkeys(("trials", "eval_seed"), tuple(EVALS)),
+    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states", "rsft_epochs"), ("rsft",)),
+    **dict.fromkeys(("rsft_batch", "train_seed"), ("rsft", "spo")),
+    **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), ("spo",)),
+    **dict.fromkeys(("spo_minibatch", "spo_lr", *SPO_OPTIONAL), ("spo",)),
 }
+INPUT = {"il": "demos", "eval_il": "il", "rsft": "il", "eval_rsft": "rsft", "spo": "rsft", "eval_cso": "spo"}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -174,7 +176,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=Path,
         default=None,
         help="a results file of other settings: a task not yet in --results starts with a copy of its parts that "
-        "come before the first part a differing setting changes (their folders copied from --reuse-work)",
+        "no differing setting changes (their folders copied from --reuse-work)",
     )
     a("--reuse-work", type=Path, default=None, help="the --work of the --reuse run")
     args = p.parse_args(argv)
@@ -283,16 +285,18 @@ def load_results(path: Path, config: dict[str, Any], command: str) -> dict[str, 
 
 
 def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> list[str]:
-    """The finished parts of ``task`` in results ``other`` that ``config`` would compute the same: those before the
-    first part a differing setting changes (FIRST_PART; an unknown setting changes them all)."""
+    """The finished parts of ``task`` in results ``other`` that ``config`` would compute the same: those that no
+    differing setting changes (CHANGES), directly or through the part they start from (INPUT)."""
     theirs = other["config"]
     differ = [k for k in config.keys() | theirs.keys() if config.get(k) != theirs.get(k)]
-    first = min((PARTS.index(FIRST_PART.get(k, PARTS[0])) for k in differ), default=len(PARTS))
+    changed = {part for k in differ for part in CHANGES.get(k, PARTS)}
     done = other["tasks"].get(task, {}).get("parts", {})
-    reusable = []
-    for part in PARTS[:first]:
-        if part not in done or "failed" in done[part]:
-            break
+    reusable: list[str] = []
+    for part in PARTS:  # in order: a part's INPUT comes before it
+        if part in changed or part not in done or "failed" in done[part]:
+            continue
+        if part in INPUT and INPUT[part] not in reusable:
+            continue
         reusable.append(part)
     return reusable
 

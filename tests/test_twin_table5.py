@@ -116,7 +116,7 @@ def test_the_spo_flags_reach_the_spo_command_and_the_config_only_when_set(t5, tm
         assert capsys.readouterr().err.splitlines()[-1].split(": error: ")[1].startswith("--spo-")
 
 
-def test_reuse_copies_the_parts_before_the_first_one_a_differing_setting_changes(t5, tmp_path):
+def test_reuse_copies_the_parts_that_no_differing_setting_changes(t5, tmp_path):
     old_args = t5.parse_args(["--demos=3"])
     old = {"config": t5.config_of(old_args), "command": "x", "tasks": {}}
     old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
@@ -135,10 +135,11 @@ def test_reuse_copies_the_parts_before_the_first_one_a_differing_setting_changes
     assert reused("--spo-k=8") == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
     assert reused("--spo-clip=0.8,1.2") == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
     assert reused("--rsft-epochs=5") == ["demos", "il", "eval_il"]
-    assert reused("--trials=50") == ["demos", "il"] and reused("--ae-dim=192") == ["demos"]
+    assert reused("--trials=50") == ["demos", "il", "rsft", "spo"]  # only the evaluations change
+    assert reused("--episode-s=5") == ["demos", "il"] and reused("--ae-dim=192") == ["demos"]
     assert reused("--fps=5") == [] and reused("--arrange-s=5") == []  # a setting the demos depend on
     old["tasks"]["press_button"]["parts"]["rsft"]["failed"] = "too few successes"
-    assert reused("--spo-k=8") == ["demos", "il", "eval_il"]  # a failed part is run again, not copied
+    assert reused("--trials=50") == ["demos", "il"]  # a failed part is run again, not copied; nor what follows it
     del old["tasks"]["press_button"]["parts"]["rsft"]["failed"]
 
     new_work, new_path = tmp_path / "new", tmp_path / "new.json"
