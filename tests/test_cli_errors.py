@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -185,6 +186,37 @@ def test_standalone_rsft_is_complete_only_for_the_same_settings_and_policy(
     assert code == 2 and "(rsft.n_strikes: 4 → 5)" in err
     code, _, err = run_cli([*rsft, f"--policy.path={other}"], capsys)
     assert code == 2 and f"policy.path: {first.resolve()} → {other.resolve()}" in err
+
+
+def test_standalone_rsft_stopped_at_its_state_budget_continues_into_a_larger_one(
+    two_policies, tmp_path, capsys, monkeypatch
+):
+    """An R-SFT that ran out of states (``max_states_per_task``) was refused when rerun with a larger budget, so
+    its episodes were lost; now it continues from its journal, rolling out no state twice."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    engines: list[ScriptedEngine] = []
+
+    def engine(policy, pre, post, cfg) -> ScriptedEngine:
+        engines.append(ScriptedEngine(mixed, policy=policy))
+        return engines[-1]
+
+    monkeypatch.setattr(rollout_stage, "stage_engine", engine)
+    first, _ = two_policies
+    out = tmp_path / "rsft"
+    rsft = ["rsft", f"--tasks={TASKS[0]}", f"--output_dir={out}", f"--policy.path={first}", "--successes_per_task=2"]
+    rsft += ["--n_strikes=4", "--max_successes_per_state=1", "--stop_state_at_cap=true", "--states_per_round=1"]
+    rsft += ["--epochs=1", "--batch_size=8", "--lr=0.001", "--min_lr=0.0001"]
+    assert cli.main([*rsft, "--max_states_per_task=1"]) == 2  # one state keeps at most one success
+    err = capsys.readouterr().err
+    assert re.search(rf"\n(\r.*)?error: {TASKS[0]}: only [01] successes after 1 initial states;", err)
+    tried = {s.seed for call in engines[0].calls for s in call}
+    assert len(tried) == 1
+    code, stdout, _ = run_cli([*rsft, "--max_states_per_task=8"], capsys)
+    assert code == 0 and "rsft: continuing (rsft.max_states_per_task: 1 → 8)" in stdout
+    assert not tried & {s.seed for call in engines[1].calls for s in call}  # the first state is not rolled again
+    assert (out / "pretrained_model" / "config.json").is_file()
+    code, _, err = run_cli([*rsft, "--max_states_per_task=4"], capsys)
+    assert code == 2 and "(rsft.max_states_per_task: 8 → 4)" in err
 
 
 def test_a_fresh_training_run_too_short_to_reach_the_prior_is_warned_about(caplog):

@@ -218,51 +218,51 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
         for task in tasks:
             journal.drop_unrecorded(task)
     distributed.wait_for_everyone()
-    progress = tqdm(total=cfg.successes_per_task * len(tasks), desc="R-SFT successes", disable=not main)
-    progress.update(sum(len(journal.episode_files(t)) for t in tasks))
-    while True:
-        kept = {t: len(journal.episode_files(t)) for t in tasks}
-        todo = [t for t in tasks if kept[t] < cfg.successes_per_task]
-        if not todo:
-            break
-        requests = []
-        for task in todo:
-            tried = journal.states(task)
-            if len(tried) >= cfg.max_states_per_task:
-                raise UsageError(
-                    f"{task}: only {kept[task]} successes after {len(tried)} initial states; the IL policy "
-                    f"rarely solves it (raise --max_states_per_task or lower --successes_per_task)"
-                )
-            fresh = [s for s in world.training_states(task, "rsft", 0, cfg.max_states_per_task) if s not in tried]
-            requests += [InitialState(task, s) for s in fresh[: cfg.states_per_round]]
-        round_seed = seeds.round_seed(cfg.seed, requests[0].seed)
-        needed, per_state = dict(kept), dict.fromkeys(requests, 0)
+    # closed before an error propagates, so that the error line starts a line of its own
+    with tqdm(total=cfg.successes_per_task * len(tasks), desc="R-SFT successes", disable=not main) as progress:
+        progress.update(sum(len(journal.episode_files(t)) for t in tasks))
+        while True:
+            kept = {t: len(journal.episode_files(t)) for t in tasks}
+            todo = [t for t in tasks if kept[t] < cfg.successes_per_task]
+            if not todo:
+                break
+            requests = []
+            for task in todo:
+                tried = journal.states(task)
+                if len(tried) >= cfg.max_states_per_task:
+                    raise UsageError(
+                        f"{task}: only {kept[task]} successes after {len(tried)} initial states; the IL policy "
+                        f"rarely solves it (raise --max_states_per_task or lower --successes_per_task)"
+                    )
+                fresh = [s for s in world.training_states(task, "rsft", 0, cfg.max_states_per_task) if s not in tried]
+                requests += [InitialState(task, s) for s in fresh[: cfg.states_per_round]]
+            round_seed = seeds.round_seed(cfg.seed, requests[0].seed)
+            needed, per_state = dict(kept), dict.fromkeys(requests, 0)
 
-        def keep(episode: Episode, needed: dict[str, int] = needed, per_state: dict = per_state) -> None:
-            state, cap = InitialState(episode.task, episode.init_seed), cfg.max_successes_per_state or cfg.n_strikes
-            if episode.success and needed[episode.task] < cfg.successes_per_task and per_state[state] < cap:
-                needed[episode.task] += 1
-                per_state[state] += 1
-                journal.save_episode(episode, sampling)
-                progress.update(1)
+            def keep(episode: Episode, needed: dict[str, int] = needed, per_state: dict = per_state) -> None:
+                state, cap = InitialState(episode.task, episode.init_seed), cfg.max_successes_per_state or cfg.n_strikes
+                if episode.success and needed[episode.task] < cfg.successes_per_task and per_state[state] < cap:
+                    needed[episode.task] += 1
+                    per_state[state] += 1
+                    journal.save_episode(episode, sampling)
+                    progress.update(1)
 
-        stop_after = cfg.max_successes_per_state if cfg.stop_state_at_cap else None
-        filmed = () if cfg.records_frames else range(len(requests))  # decision frames, kept in every trace
-        result = engine.rollout(
-            requests,
-            k=cfg.n_strikes,
-            sampling=sampling,
-            seed=round_seed,
-            on_episode=keep,
-            stop_after=stop_after,
-            keep_frames=filmed,
-        )
-        if main:
-            for group in result.groups():
-                first = group[0]
-                journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
-        distributed.wait_for_everyone()
-    progress.close()
+            stop_after = cfg.max_successes_per_state if cfg.stop_state_at_cap else None
+            filmed = () if cfg.records_frames else range(len(requests))  # decision frames, kept in every trace
+            result = engine.rollout(
+                requests,
+                k=cfg.n_strikes,
+                sampling=sampling,
+                seed=round_seed,
+                on_episode=keep,
+                stop_after=stop_after,
+                keep_frames=filmed,
+            )
+            if main:
+                for group in result.groups():
+                    first = group[0]
+                    journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
+            distributed.wait_for_everyone()
 
 
 def buffer_features(
@@ -547,6 +547,10 @@ class RSFTStage(CheckpointStage):
     """The pipeline's R-SFT stage: the frozen-encoder checkpoint ``output_dir/pretrained_model``."""
 
     name = "rsft"
+    # A collection stopped at its state budget continues into more states as the longer budget would have run it
+    # from the start: the states are a fixed sequence tried in order, each round's sampling seed is its first
+    # state's, and a finished R-SFT is not rerun.
+    grows = ("rsft.max_states_per_task",)
 
     def run(self) -> dict[str, Any]:
         return run_rsft(self.cfg, self.make_engine)
