@@ -62,11 +62,14 @@ class ShardedRollouts:
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
         keep_frames: Collection[int] = (),
+        round_id: int | None = None,
     ) -> RolloutResult:
         """As :meth:`RolloutEngine.rollout`; ``on_episode`` runs on the main process, for every episode."""
         states = [InitialState(*s) for s in initial_states]
         if self.world_size == 1:
-            return self.engine.rollout(states, k, sampling, seed, progress, on_episode, stop_after, keep_frames)
+            return self.engine.rollout(
+                states, k, sampling, seed, progress, on_episode, stop_after, keep_frames, round_id
+            )
         mine = list(range(self.rank, len(states), self.world_size))
         local = (
             self.engine.rollout(
@@ -78,6 +81,7 @@ class ShardedRollouts:
                 None,
                 stop_after,
                 [i for i, g in enumerate(mine) if g in keep_frames],
+                round_id,
             )
             if mine
             else None

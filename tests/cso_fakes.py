@@ -111,6 +111,7 @@ class ScriptedEngine:
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
         keep_frames: Collection[int] = (),  # no camera here: nothing to keep
+        round_id: int | None = None,  # no journal here: nothing to name
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         self.calls.append(states)

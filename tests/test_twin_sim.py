@@ -119,3 +119,21 @@ def test_a_bad_twin_operator_setting_is_one_error_line(policy, tmp_path, monkeyp
     assert capsys.readouterr().err.strip().splitlines() == [
         "error: operator.state_port must be a finite number > 0 and < 65535, got 70000"
     ]
+
+
+def test_spo_with_a_state_pool_rolls_out_a_state_drawn_again_instead_of_replaying_it(
+    policy, tmp_path, monkeypatch, capsys
+):
+    """SPO's state pool draws state 0 in both iterations; the robot journal named attempts by state alone, so the
+    second iteration replayed the first one's episodes (an older policy's) instead of running the arm."""
+    monkeypatch.setattr("sys.argv", ["lerobot-cso"])
+    out = tmp_path / "spo"
+    robot = [a for a in eval_args(policy, out, fps=10)[1:] if not a.startswith("--episodes_per_task")]
+    spo = ["--iterations=2", "--groups_per_iteration=1", "--group_size=2", "--max_draw_factor=1", "--state_pool=1"]
+    assert cli.main(["spo", *robot, *spo, "--epochs=1", "--minibatch_trajectories=2"]) == 0
+    stdout = capsys.readouterr().out
+    assert stdout.count("state 0, attempt 1: ") == stdout.count("state 0, attempt 2: ") == 2  # both on the arm
+    names = sorted(p.stem for p in (out / "robot_journal" / "episodes").glob("*/*.npz"))
+    assert len(names) == 4 and len({n.rsplit("_", 1)[0] for n in names}) == 2  # two rounds of two attempts
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [row["episodes"] for row in log] == [2, 2]

@@ -298,7 +298,12 @@ def collect_groups(
         positions, states, cursor = draw_states(cfg, tasks, cursor, n, skip_until, iteration)
         if not states:
             break  # every state of the pool is being skipped
-        result = engine.rollout(states, k=cfg.group_size, sampling=cfg.sampling, seed=round_seed + drawn)
+        # A pool draws its states again in later iterations: a robot's journal must keep each draw's attempts
+        # apart (named by this draw's seed), or a later draw would replay an earlier policy's episodes.
+        pooled = None if cfg.state_pool is None else round_seed + drawn
+        result = engine.rollout(
+            states, k=cfg.group_size, sampling=cfg.sampling, seed=round_seed + drawn, round_id=pooled
+        )
         groups = result.groups()
         rewards = torch.tensor([[float(e.success) for e in g] for g in groups])
         keep = reject_uniform_groups(rewards)

@@ -22,12 +22,14 @@ import numpy as np
 class Job:
     """One episode to run: a task, the initial state's id in its world, and the caller's handle for it;
     ``keep_frames`` asks a backend that records no camera frames (only decisions are rendered) for this
-    episode's frames (e.g. for a video)."""
+    episode's frames (e.g. for a video). ``round_id`` names the caller's round where one initial state recurs
+    across rounds (SPO's state pool): a journal keeps each round's attempts apart."""
 
     task: str
     init_seed: int
     key: Any = None
     keep_frames: bool = False
+    round_id: int | None = None
 
 
 @dataclass

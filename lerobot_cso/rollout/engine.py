@@ -285,6 +285,7 @@ class RolloutEngine:
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
         keep_frames: Collection[int] = (),
+        round_id: int | None = None,
     ) -> RolloutResult:
         """Roll the policy out ``k`` times from each initial state; episodes come back ordered by (group, sample).
 
@@ -293,14 +294,15 @@ class RolloutEngine:
 
         ``on_episode`` is called with each episode as soon as it finishes (in finishing order). With
         ``stop_after``, a group whose finished samples hold that many successes starts no more samples: the
-        ones not started are absent from the result.
+        ones not started are absent from the result. ``round_id`` names this call's round in a backend's journal
+        (:class:`~lerobot_cso.rollout.backend.Job`), for callers that draw an initial state again in later calls.
         """
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
         if stop_after is not None and stop_after < 1:
             raise ValueError(f"stop_after must be >= 1, got {stop_after}")
         states = [InitialState(*s) for s in initial_states]
-        jobs = [Job(s.task, s.seed, (g, i), g in keep_frames) for g, s in enumerate(states) for i in range(k)]
+        jobs = [Job(s.task, s.seed, (g, i), g in keep_frames, round_id) for g, s in enumerate(states) for i in range(k)]
         successes = [0] * len(states)
         skipped: set[int] = set()
 

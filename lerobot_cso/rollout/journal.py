@@ -1,9 +1,11 @@
-"""The episode journal a backend can keep: every finished episode (a :class:`~lerobot_cso.rollout.backend.Trace`)
-on disk the moment it ends, so that a rerun of the same jobs replays them instead of running them again.
+"""The episode journal a backend can keep: every finished episode (a :class:`~lerobot_cso.rollout.backend.Trace`) on
+disk the moment it ends, so that a rerun of the same jobs replays them instead of running them again.
 
-An attempt is a job's try at its initial state: the jobs of one ``(task, initial state)`` are attempts 1, 2, ...
-in request order. Each attempt is one ``.npz`` of a :class:`~lerobot_cso.durable.EpisodeJournal` (states, actions,
-outcome, camera frames, the controller's record); tries that were discarded are noted beside it.
+An attempt is a job's try at its initial state: the jobs of one ``(task, initial state)`` are attempts 1, 2, ... in
+request order; a job with a ``round_id`` (a state the caller draws again in later rounds) names its round too, so a
+later round's attempts are run, not replayed from an earlier round's. Each attempt is one ``.npz`` of a
+:class:`~lerobot_cso.durable.EpisodeJournal` (states, actions, outcome, camera frames, the controller's record); tries
+that were discarded are noted beside it.
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ class TraceJournal:
         self.journal = EpisodeJournal(root, spec, what=what)
 
     def _name(self, job: Job, attempt: int) -> tuple[str, str]:
-        return _slug(job.task), f"{job.init_seed:07d}_{attempt:03d}"
+        round_part = "" if job.round_id is None else f"r{job.round_id}_"
+        return _slug(job.task), f"{job.init_seed:07d}_{round_part}{attempt:03d}"
 
     def has(self, job: Job, attempt: int) -> bool:
         """Whether the attempt is finished and on disk."""
