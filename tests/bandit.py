@@ -83,6 +83,7 @@ class BanditEngine:
         on_episode: Callable[[Episode], None] | None = None,
         stop_after: int | None = None,
         keep_frames: Collection[int] = (),  # no camera here: nothing to keep
+        round_id: int | None = None,  # no journal here: nothing to name
     ) -> RolloutResult:
         states = [InitialState(*s) for s in initial_states]
         jobs = [(g, i, s) for g, s in enumerate(states) for i in range(k)]
