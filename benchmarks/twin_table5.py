@@ -22,8 +22,9 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
    ``--robot.type=piper_twin_sim`` (faster than real time) labelled by ``--operator.type=twin``, with the budgets of
    configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise (``--spo-clip``,
    ``--spo-state-pool`` and ``--spo-skip-uniform-for`` give SPO the camera benchmark's trust region and state
-   pool). R-SFT and SPO place their scenes from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i
-   (trial i): disjoint from each other and from the demonstrations' seeds (checked).
+   pool; ``--rsft-demo-fraction`` mixes the task's demonstrations into R-SFT's fine-tune). R-SFT and SPO place their
+   scenes from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i (trial i): disjoint from each other and
+   from the demonstrations' seeds (checked).
 
 ``--record-on=sim`` records on ``piper_twin_sim`` instead (the same ``lerobot-record`` loop, paced in real time, but
 the twin on simulated time: a starved or paused process records the same demonstration), for a machine too busy
@@ -34,11 +35,13 @@ time and its episodes; a rerun skips the finished parts and resumes an unfinishe
 (``lerobot-record --resume``, ``lerobot-train --resume``, the robot stages' journals). A results file made with other
 settings is refused, but ``--reuse=<results> --reuse-work=<work>`` starts each task from a copy of the parts of another
 run that its differing settings do not change (e.g. a larger SPO budget from the same IL and R-SFT; the copied records
-say ``reused_from``). An R-SFT that finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states`` scenes is
-recorded as failed (no SPO, no CSO for that task at this budget). The operator-equivalent cost of each part: its
-episodes, their length on the twin (its time is the real arm's time), and what a person would spend at the arm: the
-episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an assumption: placing the objects by hand; the
-twin does it instantly). The defaults and their measured costs: docs/real-arm.md.
+say ``reused_from``); when only R-SFT's fine-tune settings differ, its collection is copied too and only its fine-tune
+runs again (the task says ``rsft_collection_reused_from``). An R-SFT that finds fewer than ``--rsft-successes``
+successes in ``--rsft-max-states`` scenes is recorded as failed (no SPO, no CSO for that task at this budget). The
+operator-equivalent cost of each part: its episodes, their length on the twin (its time is the real arm's time), and
+what a person would spend at the arm: the episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an
+assumption: placing the objects by hand; the twin does it instantly). The defaults and their measured costs:
+docs/real-arm.md.
 
     python benchmarks/twin_table5.py                      # the full run (defaults), ~1.5 h on a free 2-core VM
     python benchmarks/twin_table5.py --dry-run            # the commands of the parts still to run
@@ -95,9 +98,9 @@ EVALS = {"eval_il": "il", "eval_rsft": "rsft", "eval_cso": "cso"}
 RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after", "reuse", "reuse_work")
 # Flags named after the POLICY field they set: the results' config holds them inside its "policy" entry.
 POLICY_FLAGS = ("ae_dim", "image_shift")
-# SPO flags added after results were first written: the config holds them only when they differ from these defaults
-# (which are SPO's own), so older results files stay valid.
-SPO_OPTIONAL = {"spo_clip": None, "spo_state_pool": None, "spo_skip_uniform_for": 0}
+# Flags added after results were first written: the config holds them only when they differ from these defaults
+# (which are the stages' own), so older results files stay valid.
+OPTIONAL = {"spo_clip": None, "spo_state_pool": None, "spo_skip_uniform_for": 0, "rsft_demo_fraction": 0.0}
 # The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
 # also changes when the part it starts from (INPUT) does. What --reuse may copy from a results file of other
 # settings is every part that no differing setting changes.
@@ -105,11 +108,16 @@ CHANGES = {
     **dict.fromkeys(("il_steps", "il_ae_steps", "il_batch", "il_seed", "policy"), ("il",)),
     "episode_s": ("eval_il", "rsft", "eval_rsft", "spo", "eval_cso"),
     **dict.fromkeys(("trials", "eval_seed"), tuple(EVALS)),
-    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states", "rsft_epochs"), ("rsft",)),
+    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states"), ("rsft",)),
+    **dict.fromkeys(("rsft_epochs", "rsft_demo_fraction"), ("rsft",)),
     **dict.fromkeys(("rsft_batch", "train_seed"), ("rsft", "spo")),
     **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), ("spo",)),
-    **dict.fromkeys(("spo_minibatch", "spo_lr", *SPO_OPTIONAL), ("spo",)),
+    **dict.fromkeys(("spo_minibatch", "spo_lr", "spo_clip", "spo_state_pool", "spo_skip_uniform_for"), ("spo",)),
 }
+# Settings of R-SFT's fine-tune alone: when they are all that changes R-SFT, --reuse copies its collection (the
+# scenes, attempts and successes: R-SFT's journal and buffer) and only the fine-tune runs again.
+FINETUNE = ("rsft_epochs", "rsft_batch", "rsft_demo_fraction")
+COLLECTION = ("journal", "buffer", "robot_journal", "collection.json")
 INPUT = {"il": "demos", "eval_il": "il", "rsft": "il", "eval_rsft": "rsft", "spo": "rsft", "eval_cso": "spo"}
 
 
@@ -156,6 +164,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     a("--rsft-max-states", type=int, default=40)
     a("--rsft-epochs", type=int, default=20)
     a("--rsft-batch", type=int, default=64)
+    a(
+        "--rsft-demo-fraction",
+        type=float,
+        default=0.0,
+        help="R-SFT's demo_fraction: this share of each fine-tune epoch's decisions from the task's demos",
+    )
     a("--spo-iterations", type=int, default=4)
     a("--spo-groups", type=int, default=6)
     a("--spo-k", type=int, default=4)
@@ -199,6 +213,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
     if args.image_shift < 0:
         p.error(f"--image-shift must be >= 0, got {args.image_shift}")
+    if not 0 <= args.rsft_demo_fraction < 1:
+        p.error(f"--rsft-demo-fraction must be in [0, 1), got {args.rsft_demo_fraction:g}")
     if args.spo_clip is not None:
         try:
             low, high = (float(v) for v in args.spo_clip.split(","))
@@ -257,7 +273,7 @@ def config_of(args: argparse.Namespace) -> dict[str, Any]:
     cfg = {
         k: v
         for k, v in vars(args).items()
-        if k not in RUNTIME and k not in POLICY_FLAGS and not (k in SPO_OPTIONAL and v == SPO_OPTIONAL[k])
+        if k not in RUNTIME and k not in POLICY_FLAGS and not (k in OPTIONAL and v == OPTIONAL[k])
     }
     return json.loads(json.dumps(cfg | {"policy": policy_of(args)}))
 
@@ -284,9 +300,10 @@ def load_results(path: Path, config: dict[str, Any], command: str) -> dict[str, 
     return {"config": config, "command": command, "tasks": {}}
 
 
-def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> list[str]:
+def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> tuple[list[str], bool]:
     """The finished parts of ``task`` in results ``other`` that ``config`` would compute the same: those that no
-    differing setting changes (CHANGES), directly or through the part they start from (INPUT)."""
+    differing setting changes (CHANGES), directly or through the part they start from (INPUT); and whether R-SFT's
+    collection is reusable when R-SFT itself is not (only FINETUNE settings change it)."""
     theirs = other["config"]
     differ = [k for k in config.keys() | theirs.keys() if config.get(k) != theirs.get(k)]
     changed = {part for k in differ for part in CHANGES.get(k, PARTS)}
@@ -298,34 +315,60 @@ def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> 
         if part in INPUT and INPUT[part] not in reusable:
             continue
         reusable.append(part)
-    return reusable
+    collection = (
+        "rsft" not in reusable
+        and INPUT["rsft"] in reusable
+        and "rsft" in done
+        and "failed" not in done["rsft"]
+        and all(k in FINETUNE for k in differ if "rsft" in CHANGES.get(k, PARTS))
+    )
+    return reusable, collection
 
 
 def reuse(args: argparse.Namespace, config: dict[str, Any], task: str, entry: dict[str, Any], base: Path) -> None:
     """Start ``task`` from copies of the reusable parts of ``--reuse``: their folders from ``--reuse-work`` (copied
     under a temporary name, then renamed, so an interrupted copy is redone), then their records."""
     other = json.loads(args.reuse.read_text())
-    parts = reusable_parts(config, other, task)
-    for part in parts:
-        names = ["demos", "demos_attempts.jsonl"] if part == "demos" else [part]
-        for name in names:
-            source, target = args.reuse_work / task / name, base / name
-            if not source.exists():
-                raise SystemExit(f"error: --reuse-work has no {source} for the reused part {task} {part}")
-            tmp = target.with_name(target.name + ".copying")
-            for stale in (tmp, target):
-                if stale.is_dir():
-                    shutil.rmtree(stale)
-                else:
-                    stale.unlink(missing_ok=True)
-            if source.is_dir():
-                shutil.copytree(source, tmp)
+    parts, collection = reusable_parts(config, other, task)
+    names = {"demos": ["demos", "demos_attempts.jsonl"]}
+    copies = [(part, name) for part in parts for name in names.get(part, [part])]
+    copies += [("rsft", f"rsft/{name}") for name in COLLECTION] if collection else []
+    for part, name in copies:
+        source, target = args.reuse_work / task / name, base / name
+        if not source.exists():
+            raise SystemExit(f"error: --reuse-work has no {source} for the reused part {task} {part}")
+        tmp = target.with_name(target.name + ".copying")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        for stale in (tmp, target):
+            if stale.is_dir():
+                shutil.rmtree(stale)
             else:
-                shutil.copy2(source, tmp)
-            os.replace(tmp, target)
+                stale.unlink(missing_ok=True)
+        if source.is_dir():
+            shutil.copytree(source, tmp)
+        else:
+            shutil.copy2(source, tmp)
+        os.replace(tmp, target)
     for part in parts:
         entry["parts"][part] = other["tasks"][task]["parts"][part] | {"reused_from": str(args.reuse)}
-    print(f"[twin_table5] {task}: reused {', '.join(parts) or 'nothing'} from {args.reuse}", flush=True)
+    if collection:
+        il_policy = base / "il" / "checkpoints" / "last" / "pretrained_model"
+        for name in ("journal", "robot_journal"):
+            rebase_journal(base / "rsft" / name / "spec.json", il_policy)
+        entry["rsft_collection_reused_from"] = str(args.reuse)
+    reused = ", ".join(parts + (["R-SFT's collection"] if collection else [])) or "nothing"
+    print(f"[twin_table5] {task}: reused {reused} from {args.reuse}", flush=True)
+
+
+def rebase_journal(spec_path: Path, policy: Path) -> None:
+    """Point a copied journal at the copy of the checkpoint that made it: its ``policy`` path becomes ``policy``
+    once that holds the same weights (the journals refuse another policy by its path)."""
+    spec = json.loads(spec_path.read_text())
+    made_by = Path(spec["policy"]) / "model.safetensors"
+    if not made_by.is_file() or made_by.read_bytes() != (policy / "model.safetensors").read_bytes():
+        raise SystemExit(f"error: {spec_path} was made by {made_by.parent}, which is gone or not the reused IL")
+    spec["policy"] = str(policy)
+    spec_path.write_text(json.dumps(spec, indent=2) + "\n")
 
 
 def save_results(path: Path, results: dict[str, Any]) -> None:
@@ -454,6 +497,8 @@ def stage_command(args: argparse.Namespace, task: str, part: str, paths: dict[st
             "--stop_state_at_cap=true", f"--successes_per_task={args.rsft_successes}", "--states_per_round=1",
             f"--max_states_per_task={args.rsft_max_states}", f"--epochs={args.rsft_epochs}",
             f"--batch_size={args.rsft_batch}", f"--train_threads={args.threads}",
+            *([f"--demo_fraction={args.rsft_demo_fraction:g}", f"--demos_root={paths['demos']}",
+               f"--demos_repo_id=local/twin_{task}"] if args.rsft_demo_fraction else []),
         ]  # fmt: skip
     assert part == "spo"
     return [

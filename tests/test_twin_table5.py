@@ -104,7 +104,7 @@ def test_the_policy_flags_reach_the_il_command_and_the_policy_entry_of_the_confi
 def test_the_spo_flags_reach_the_spo_command_and_the_config_only_when_set(t5, tmp_path, capsys):
     paths = {"rsft_policy": tmp_path / "rsft_policy", "spo": tmp_path / "spo"}
     default = t5.parse_args([])
-    assert not t5.SPO_OPTIONAL.keys() & t5.config_of(default).keys()  # older results files stay valid
+    assert not t5.OPTIONAL.keys() & t5.config_of(default).keys()  # older results files stay valid
     assert not [a for a in t5.stage_command(default, "press_button", "spo", paths) if "clip" in a or "pool" in a]
     args = t5.parse_args(["--spo-clip=0.8,1.2", "--spo-state-pool=32", "--spo-skip-uniform-for=3"])
     spo = t5.stage_command(args, "press_button", "spo", paths)
@@ -129,7 +129,7 @@ def test_reuse_copies_the_parts_that_no_differing_setting_changes(t5, tmp_path):
     t5.save_results(old_path, old)
 
     def reused(*flags: str) -> list[str]:
-        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")
+        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")[0]
 
     assert reused() == list(t5.PARTS)
     assert reused("--spo-k=8") == ["demos", "il", "eval_il", "rsft", "eval_rsft"]
@@ -156,3 +156,83 @@ def test_reuse_copies_the_parts_that_no_differing_setting_changes(t5, tmp_path):
     assert t5.config_of(args) == json.loads(new_path.read_text())["config"]
     with pytest.raises(SystemExit):
         t5.parse_args([f"--reuse={old_path}"])  # without --reuse-work
+
+
+def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5, tmp_path, capsys):
+    paths = {"il_policy": tmp_path / "il_policy", "rsft": tmp_path / "rsft", "demos": tmp_path / "demos"}
+    assert not [a for a in t5.stage_command(t5.parse_args([]), "press_button", "rsft", paths) if "demo" in a]
+    args = t5.parse_args(["--rsft-demo-fraction=0.5"])
+    rsft = t5.stage_command(args, "press_button", "rsft", paths)
+    assert {
+        "--demo_fraction=0.5",
+        f"--demos_root={tmp_path / 'demos'}",
+        "--demos_repo_id=local/twin_press_button",
+    } <= set(rsft)
+    assert t5.config_of(args)["rsft_demo_fraction"] == 0.5
+    for bad in ("--rsft-demo-fraction=1", "--rsft-demo-fraction=-0.1"):
+        with pytest.raises(SystemExit):
+            t5.parse_args([bad])
+        assert "--rsft-demo-fraction must be in [0, 1)" in capsys.readouterr().err
+
+    old = {"config": t5.config_of(t5.parse_args(["--demos=3"])), "command": "x", "tasks": {}}
+    old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
+
+    def reused(*flags: str) -> tuple[list[str], bool]:
+        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")
+
+    assert reused("--rsft-demo-fraction=0.5") == (["demos", "il", "eval_il"], True)
+    assert reused("--rsft-epochs=5", "--rsft-batch=32") == (["demos", "il", "eval_il"], True)
+    assert reused("--rsft-demo-fraction=0.5", "--rsft-strikes=3")[1] is False  # the collection changes too
+    assert reused("--rsft-demo-fraction=0.5", "--il-steps=2000")[1] is False  # from another IL
+    assert reused("--spo-k=8") == (["demos", "il", "eval_il", "rsft", "eval_rsft"], False)  # R-SFT whole
+
+    # the copy: the collection's folders, their journals pointed at the copied IL; no fine-tune, no stage record
+    old_work = tmp_path / "old" / "press_button"
+    old_il = old_work / "il" / "checkpoints" / "last" / "pretrained_model"
+    old_il.mkdir(parents=True)
+    (old_il / "model.safetensors").write_bytes(b"IL weights")
+    (old_work / "demos").mkdir()
+    (old_work / "demos_attempts.jsonl").write_text("{}\n")
+    (old_work / "eval_il").mkdir()
+    for name in ("journal", "robot_journal", "buffer", "pretrained_model", "train_state"):
+        (old_work / "rsft" / name).mkdir(parents=True)
+        (old_work / "rsft" / name / "spec.json").write_text(json.dumps({"policy": str(old_il), "n_strikes": 4}))
+    for name in ("collection.json", "stage.json"):
+        (old_work / "rsft" / name).write_text("{}")
+    old_path = tmp_path / "old.json"
+    t5.save_results(old_path, old)
+    new_work = tmp_path / "new"
+    flags = ["--demos=3", "--rsft-demo-fraction=0.5", f"--reuse={old_path}", f"--reuse-work={tmp_path / 'old'}"]
+    t5.main(
+        [
+            *flags,
+            f"--work={new_work}",
+            f"--results={tmp_path / 'new.json'}",
+            "--stop-after=eval_il",
+            "--tasks=press_button",
+        ]
+    )
+    entry = json.loads((tmp_path / "new.json").read_text())["tasks"]["press_button"]
+    assert list(entry["parts"]) == ["demos", "il", "eval_il"]
+    assert entry["rsft_collection_reused_from"] == str(old_path)
+    rsft = new_work / "press_button" / "rsft"
+    assert sorted(p.name for p in rsft.iterdir()) == ["buffer", "collection.json", "journal", "robot_journal"]
+    new_il = new_work / "press_button" / "il" / "checkpoints" / "last" / "pretrained_model"
+    for name in ("journal", "robot_journal"):
+        assert json.loads((rsft / name / "spec.json").read_text()) == {"policy": str(new_il), "n_strikes": 4}
+
+    # a collection made by another policy than the reused IL is refused, not rebased
+    other_il = tmp_path / "other_il"
+    other_il.mkdir()
+    (other_il / "model.safetensors").write_bytes(b"other weights")
+    (old_work / "rsft" / "journal" / "spec.json").write_text(json.dumps({"policy": str(other_il)}))
+    with pytest.raises(SystemExit, match="not the reused IL"):
+        t5.main(
+            [
+                *flags,
+                f"--work={tmp_path / 'new2'}",
+                f"--results={tmp_path / 'new2.json'}",
+                "--stop-after=eval_il",
+                "--tasks=press_button",
+            ]
+        )
