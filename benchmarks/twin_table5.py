@@ -31,17 +31,17 @@ the twin on simulated time: a starved or paused process records the same demonst
 for the real-time emulator.
 
 Every finished part is written at once to ``--results`` (default ``benchmarks/results/twin_table5.json``) with its wall
-time and its episodes; a rerun skips the finished parts and resumes an unfinished one from its own output
-(``lerobot-record --resume``, ``lerobot-train --resume``, the robot stages' journals). A results file made with other
-settings is refused, but ``--reuse=<results> --reuse-work=<work>`` starts each task from a copy of the parts of another
-run that its differing settings do not change (e.g. a larger SPO budget from the same IL and R-SFT; the copied records
-say ``reused_from``); when only R-SFT's fine-tune settings differ, its collection is copied too and only its fine-tune
-runs again (the task says ``rsft_collection_reused_from``). An R-SFT that finds fewer than ``--rsft-successes``
-successes in ``--rsft-max-states`` scenes is recorded as failed (no SPO, no CSO for that task at this budget). The
-operator-equivalent cost of each part: its episodes, their length on the twin (its time is the real arm's time), and
-what a person would spend at the arm: the episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an
-assumption: placing the objects by hand; the twin does it instantly). The defaults and their measured costs:
-docs/real-arm.md.
+time and its episodes, and per task the paired differences of the evaluations (``paired``); a rerun skips the finished
+parts and resumes an unfinished one from its own output (``lerobot-record --resume``, ``lerobot-train --resume``, the
+robot stages' journals). A results file made with other settings is refused, but ``--reuse=<results>
+--reuse-work=<work>`` starts each task from a copy of the parts of another run that its differing settings do not change
+(e.g. a larger SPO budget from the same IL and R-SFT; the copied records say ``reused_from``); when only R-SFT's
+fine-tune settings differ, its collection is copied too and only its fine-tune runs again (the task says
+``rsft_collection_reused_from``). An R-SFT that finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states``
+scenes is recorded as failed (no SPO, no CSO for that task at this budget). The operator-equivalent cost of each part:
+its episodes, their length on the twin (its time is the real arm's time), and what a person would spend at the arm: the
+episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an assumption: placing the objects by hand; the
+twin does it instantly). The defaults and their measured costs: docs/real-arm.md.
 
     python benchmarks/twin_table5.py                      # the full run (defaults), ~1.5 h on a free 2-core VM
     python benchmarks/twin_table5.py --dry-run            # the commands of the parts still to run
@@ -108,8 +108,10 @@ CHANGES = {
     **dict.fromkeys(("il_steps", "il_ae_steps", "il_batch", "il_seed", "policy"), ("il",)),
     "episode_s": ("eval_il", "rsft", "eval_rsft", "spo", "eval_cso"),
     **dict.fromkeys(("trials", "eval_seed"), tuple(EVALS)),
-    **dict.fromkeys(("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states"), ("rsft",)),
-    **dict.fromkeys(("rsft_epochs", "rsft_demo_fraction"), ("rsft",)),
+    **dict.fromkeys(
+        ("rsft_successes", "rsft_strikes", "rsft_cap", "rsft_max_states", "rsft_epochs", "rsft_demo_fraction"),
+        ("rsft",),
+    ),
     **dict.fromkeys(("rsft_batch", "train_seed"), ("rsft", "spo")),
     **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), ("spo",)),
     **dict.fromkeys(("spo_minibatch", "spo_lr", "spo_clip", "spo_state_pool", "spo_skip_uniform_for"), ("spo",)),
@@ -118,6 +120,8 @@ CHANGES = {
 # scenes, attempts and successes: R-SFT's journal and buffer) and only the fine-tune runs again.
 FINETUNE = ("rsft_epochs", "rsft_batch", "rsft_demo_fraction")
 COLLECTION = ("journal", "buffer", "robot_journal", "collection.json")
+# The paired differences of the evaluations (their trial i is the same scene): SR(a) - SR(b).
+PAIRS = (("cso", "il"), ("rsft", "il"), ("cso", "rsft"))
 INPUT = {"il": "demos", "eval_il": "il", "rsft": "il", "eval_rsft": "rsft", "spo": "rsft", "eval_cso": "spo"}
 
 
@@ -660,13 +664,32 @@ def episode_lengths(root: Path) -> list[int]:
     return lengths
 
 
-def journal(out: Path) -> list[tuple[bool, int]]:
-    """(success, ticks) of every finished robot episode a stage journaled."""
-    episodes = []
+def journal(out: Path) -> dict[str, tuple[bool, int]]:
+    """(success, ticks) of every finished robot episode a stage journaled, by its journal name (an evaluation's trial
+    names its scene)."""
+    episodes = {}
     for path in sorted((out / "robot_journal" / "episodes").glob("*/*.npz")):
         with np.load(path) as data:
-            episodes.append((bool(data["success"]), int(data["length"])))
+            episodes[path.stem] = (bool(data["success"]), int(data["length"]))
     return episodes
+
+
+def paired_differences(base: Path) -> dict[str, dict[str, Any]]:
+    """Per pair of PAIRS whose evaluations ran the same trials: the mean of SR(a) - SR(b) over the trials, its 95 %
+    CI (normal, from the per-trial differences), and the trials a won and lost."""
+    outcomes = {method: {t: ok for t, (ok, _) in journal(base / part).items()} for part, method in EVALS.items()}
+    pairs = {}
+    for a, b in PAIRS:
+        trials = sorted(outcomes[a])
+        if len(trials) < 2 or trials != sorted(outcomes[b]):
+            continue
+        d = np.array([outcomes[a][t] for t in trials], float) - np.array([outcomes[b][t] for t in trials], float)
+        mean, half = float(d.mean()), 1.96 * float(d.std(ddof=1)) / np.sqrt(len(d))
+        pairs[f"{a}_minus_{b}"] = {
+            "mean": mean, "ci95": [mean - half, mean + half], "won": int((d > 0).sum()), "lost": int((d < 0).sum()),
+            "trials": len(d),
+        }  # fmt: skip
+    return pairs
 
 
 def summary(values: np.ndarray) -> dict[str, float] | None:
@@ -693,7 +716,7 @@ def operator_cost(
 def robot_part(args: argparse.Namespace, task: str, part: str, paths: dict[str, Path], log: Path) -> dict[str, Any]:
     out = paths[part]
     run(stage_command(args, task, part, paths), paths["home"], log)
-    episodes = journal(out)
+    episodes = list(journal(out).values())
     seconds = [ticks / args.fps for _, ticks in episodes]
     entry: dict[str, Any] = {
         "episodes": len(episodes),
@@ -769,7 +792,7 @@ def run_task(args: argparse.Namespace, task: str, results: dict[str, Any], path:
                 if part != "rsft" or "successes after" not in str(exc):
                     raise
                 # R-SFT found too few successes in --rsft-max-states scenes: no CSO for this task at this budget
-                episodes = journal(paths["rsft"])
+                episodes = list(journal(paths["rsft"]).values())
                 record = {
                     "failed": str(exc).split(": error: ", 1)[-1],
                     "episodes": len(episodes),
@@ -783,6 +806,9 @@ def run_task(args: argparse.Namespace, task: str, results: dict[str, Any], path:
         print(f"[twin_table5] {task} {part}: {record['wall_s']:.0f} s{rate}", flush=True)
         if part == args.stop_after:
             break
+    if not args.dry_run and (pairs := paired_differences(base)):
+        entry["paired"] = pairs
+        save_results(path, results)
 
 
 def main(argv: list[str] | None = None) -> None:

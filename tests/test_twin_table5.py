@@ -7,6 +7,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -236,3 +237,21 @@ def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5
                 "--tasks=press_button",
             ]
         )
+
+
+def test_the_paired_differences_pair_the_evaluations_trials_by_scene(t5, tmp_path):
+    def trials(part: str, outcomes: dict[int, bool]) -> None:
+        folder = tmp_path / part / "robot_journal" / "episodes" / "press_the_button"
+        folder.mkdir(parents=True)
+        for scene, ok in outcomes.items():  # named as the robot journal names a trial: by its scene
+            np.savez(folder / f"{scene:07d}_000.npz", success=ok, length=50)
+
+    trials("eval_il", {100003: False, 100000: True, 100001: True, 100002: False})
+    trials("eval_cso", {100000: True, 100001: True, 100002: True, 100003: False})
+    trials("eval_rsft", {100000: True, 100001: False, 100002: False})  # one trial short: not paired
+    pairs = t5.paired_differences(tmp_path)
+    assert list(pairs) == ["cso_minus_il"]
+    # differences 0, 0, +1, 0: mean 0.25, sample s.d. 0.5, half-width 1.96 * 0.5 / 2 = 0.49
+    cso_il = pairs["cso_minus_il"]
+    assert cso_il["ci95"] == pytest.approx([-0.24, 0.74])
+    assert {k: cso_il[k] for k in ("mean", "won", "lost", "trials")} == {"mean": 0.25, "won": 1, "lost": 0, "trials": 4}
