@@ -100,7 +100,13 @@ RUNTIME = ("work", "results", "threads", "tasks", "dry_run", "stop_after", "reus
 POLICY_FLAGS = ("ae_dim", "image_shift")
 # Flags added after results were first written: the config holds them only when they differ from these defaults
 # (which are the stages' own), so older results files stay valid.
-OPTIONAL = {"spo_clip": None, "spo_state_pool": None, "spo_skip_uniform_for": 0, "rsft_demo_fraction": 0.0}
+OPTIONAL = {
+    "spo_clip": None,
+    "spo_state_pool": None,
+    "spo_skip_uniform_for": 0,
+    "rsft_demo_fraction": 0.0,
+    "demo_detour": 0.0,
+}
 # The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
 # also changes when the part it starts from (INPUT) does. What --reuse may copy from a results file of other
 # settings is every part that no differing setting changes.
@@ -137,6 +143,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     # recording
     a("--demos", type=int, default=50, help="demonstrations per task")
     a("--fps", type=int, default=10, help="control frequency of the demos, hence of every stage")
+    a(
+        "--demo-detour",
+        type=float,
+        default=0.0,
+        help="m: each demo first arrives up to this far beside the object and corrects (piper_scripted detour_m)",
+    )
     a("--image-size", type=int, default=64, help="front and wrist cameras, square")
     a("--cameras", default="front,wrist", help="the twin's views the policy reads")
     a("--demo-window-s", type=str, default="press_button=10,cube_in_bowl=18", help="LeRobot's episode_time_s")
@@ -217,6 +229,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
     if args.image_shift < 0:
         p.error(f"--image-shift must be >= 0, got {args.image_shift}")
+    if args.demo_detour < 0:
+        p.error(f"--demo-detour must be >= 0, got {args.demo_detour:g}")
     if not 0 <= args.rsft_demo_fraction < 1:
         p.error(f"--rsft-demo-fraction must be in [0, 1), got {args.rsft_demo_fraction:g}")
     if args.spo_clip is not None:
@@ -589,6 +603,7 @@ def record_demos(args: argparse.Namespace, task: str, paths: dict[str, Path], lo
         command = [
             sys.executable, str(Path(__file__).resolve()), "_record", json.dumps(hook), *robot,
             "--teleop.type=piper_scripted", "--teleop.cycle=false", f"--teleop.seed={args.demo_seed + have}",
+            f"--teleop.detour_m={args.demo_detour:g}",
             *teleop, f"--dataset.repo_id=local/twin_{task}", f"--dataset.root={root}",
             f"--dataset.single_task={TASKS[task]}", f"--dataset.num_episodes={args.demos - have}",
             f"--dataset.episode_time_s={args.demo_window_s[task]:g}", "--dataset.reset_time_s=0",

@@ -13,7 +13,8 @@ class PiperScriptedConfig(TeleoperatorConfig):
     """Demonstrates the twin's task (``piper-emulator --physics``) the way a person teleoperates it: it
     watches the scene (the twin's world state on ``group``/``port``), moves the grasp point through the
     task's waypoints at ``speed_m_s`` (each jittered by ``noise_m``, from ``seed``) and gives joint targets
-    by inverse kinematics, which the follower executes through its usual safety checks.
+    by inverse kinematics, which the follower executes through its usual safety checks. ``detour_m`` > 0: it
+    first arrives beside the object, off by up to that much, and corrects (``piper_twin.demo``).
 
     ``cycle=true``: once a demonstration is done it waits ``pause_s``, asks the twin to place the objects
     for the next seed (as a person puts the cube back) and demonstrates again; otherwise it holds."""
@@ -22,6 +23,7 @@ class PiperScriptedConfig(TeleoperatorConfig):
     port: int = 43200
     speed_m_s: float = 0.12
     noise_m: float = 0.003
+    detour_m: float = 0.0
     seed: int = 0
     cycle: bool = True
     pause_s: float = 1.0
@@ -32,6 +34,6 @@ class PiperScriptedConfig(TeleoperatorConfig):
         for name in ("speed_m_s", "connect_timeout_s", "max_age_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"piper_scripted {name} must be positive, got {getattr(self, name)!r}")
-        for name in ("noise_m", "pause_s"):
+        for name in ("noise_m", "detour_m", "pause_s"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"piper_scripted {name} must not be negative, got {getattr(self, name)!r}")

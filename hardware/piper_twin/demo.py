@@ -4,6 +4,11 @@
 (each waypoint jittered by ``noise_m``, as a person's hand is). ``ScriptedDemo.step`` moves the commanded
 grasp point toward the next waypoint at ``speed_m_s`` and turns it into joint targets by IK; it moves on
 once the arm (as measured) is there and the waypoint's dwell (e.g. for the gripper to close) has passed.
+
+With ``detour_m`` > 0 a demonstration first reaches a point beside each approach waypoint (the one above the
+object), off by ``detour_m`` / 2 … ``detour_m`` in a random horizontal direction, and then corrects to it, as a
+person's coarse move is followed by a fine one. Without it every demonstration arrives exactly above the
+object, and a policy that arrives a little beside it has never seen what to do there.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ class Waypoint:
     position: np.ndarray
     gripper_m: float
     dwell_s: float = 0.0
+    approach: bool = False  # above the object, before going down to it (``detour_m`` detours before it)
 
 
 def _press_button(scene: PressButton, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
@@ -40,7 +46,7 @@ def _press_button(scene: PressButton, model: mujoco.MjModel, data: mujoco.MjData
     pressed = cap_top + axis * (scene.travel_m * 0.8) / abs(axis[2])  # the closed tips, 80 % of the travel down
     grasp = pressed - axis * TIP_M
     above = grasp + [0.0, 0.0, ABOVE_M - grasp[2]]
-    return [Waypoint(above, 0.0), Waypoint(grasp, 0.0, 0.3), Waypoint(above, 0.0)], yaw
+    return [Waypoint(above, 0.0, approach=True), Waypoint(grasp, 0.0, 0.3), Waypoint(above, 0.0)], yaw
 
 
 def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
@@ -55,7 +61,7 @@ def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData)
     over_bowl = np.array([bowl[0], bowl[1], 0.15])
     drop = np.array([bowl[0], bowl[1], scene.bowl_height_m + 0.05])
     return [
-        Waypoint(grasp + [0, 0, ABOVE_M - grasp[2]], OPEN_M),
+        Waypoint(grasp + [0, 0, ABOVE_M - grasp[2]], OPEN_M, approach=True),
         Waypoint(grasp, OPEN_M),
         Waypoint(grasp, 0.0, 0.8),
         Waypoint(lift, 0.0),
@@ -75,12 +81,25 @@ def plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list
     raise ValueError(f"no scripted demonstration for scene {scene.name!r}")
 
 
+def detour(rng: np.random.Generator, size_m: float) -> np.ndarray:
+    """A horizontal offset of ``size_m`` / 2 … ``size_m`` in a uniformly random direction."""
+    angle, length = rng.uniform(0.0, 2 * math.pi), rng.uniform(size_m / 2, size_m)
+    return np.array([length * math.cos(angle), length * math.sin(angle), 0.0])
+
+
 class ScriptedDemo:
     """One demonstration of ``scene``: ``start`` plans it, ``step`` gives the next joint and gripper targets."""
 
-    def __init__(self, scene: Scene, model: mujoco.MjModel, speed_m_s: float = 0.12, noise_m: float = 0.003) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        model: mujoco.MjModel,
+        speed_m_s: float = 0.12,
+        noise_m: float = 0.003,
+        detour_m: float = 0.0,
+    ) -> None:
         self.scene, self.model = scene, model
-        self.speed_m_s, self.noise_m = speed_m_s, noise_m
+        self.speed_m_s, self.noise_m, self.detour_m = speed_m_s, noise_m, detour_m
         self.ik = ArmIK(model)
         self.waypoints: list[Waypoint] = []
         self.index = 0
@@ -101,9 +120,11 @@ class ScriptedDemo:
         for k in range(1, len(waypoints)):
             if np.array_equal(waypoints[k].position, waypoints[k - 1].position):
                 jitter[k] = jitter[k - 1]
-        self.waypoints = [
-            Waypoint(w.position + j, w.gripper_m, w.dwell_s) for w, j in zip(waypoints, jitter, strict=True)
-        ]
+        self.waypoints = []
+        for w, j in zip(waypoints, jitter, strict=True):
+            if w.approach and self.detour_m > 0:
+                self.waypoints.append(Waypoint(w.position + j + detour(rng, self.detour_m), w.gripper_m))
+            self.waypoints.append(Waypoint(w.position + j, w.gripper_m, w.dwell_s, w.approach))
         self.index = 0
         self._joints = np.asarray(joints_rad, dtype=float)
         self._point = self.ik.grasp_pose(self._joints)[0]

@@ -240,13 +240,25 @@ def test_the_button_counts_once_pressed_past_its_depth_and_stays_counted_until_t
     assert not plant.succeeded()
 
 
-@pytest.mark.parametrize(("scene", "seed"), [("press_button", 0), ("cube_in_bowl", 1)])
-def test_a_scripted_demonstration_does_the_task_through_the_real_driver(scene, seed):
-    """The IK demonstrator at 30 Hz, each target through ``PiperDriver.command`` (its step cap and checks)."""
+@pytest.mark.parametrize(
+    ("scene", "seed", "detour_m"), [("press_button", 0, 0.0), ("cube_in_bowl", 1, 0.0), ("cube_in_bowl", 2, 0.04)]
+)
+def test_a_scripted_demonstration_does_the_task_through_the_real_driver(scene, seed, detour_m):
+    """The IK demonstrator at 30 Hz, each target through ``PiperDriver.command`` (its step cap and checks);
+    with a detour it first stops 2-4 cm beside the point above the cube, at its height, and still succeeds."""
     plant = TwinPlant(scene, seed)
-    demo = ScriptedDemo(plant.scene, plant.model)
+    demo = ScriptedDemo(plant.scene, plant.model, detour_m=detour_m)
     with make_rig(plant=plant, speed_percent=100) as rig:
         demo.start(plant.data, rig.arm.joints_rad, np.random.default_rng(seed))
+        plain = ScriptedDemo(plant.scene, plant.model)
+        plain.start(plant.data, rig.arm.joints_rad, np.random.default_rng(seed))
+        if detour_m:
+            assert len(demo.waypoints) == len(plain.waypoints) + 1
+            beside, above = demo.waypoints[0].position, demo.waypoints[1].position
+            np.testing.assert_allclose(above, plain.waypoints[0].position)  # the same jitter drawn first
+            assert beside[2] == above[2] and 0.02 <= np.linalg.norm(beside[:2] - above[:2]) <= 0.04
+        else:
+            assert [w.position.tolist() for w in demo.waypoints] == [w.position.tolist() for w in plain.waypoints]
         start = rig.now()
         while not demo.done and rig.now() - start < 15.0:
             joints, gripper = demo.step(1 / 30, rig.driver.checked_state().joint_positions_rad)
