@@ -229,8 +229,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
     if args.image_shift < 0:
         p.error(f"--image-shift must be >= 0, got {args.image_shift}")
-    if args.demo_detour < 0:
-        p.error(f"--demo-detour must be >= 0, got {args.demo_detour:g}")
+    if not 0 <= args.demo_detour < float("inf"):
+        p.error(f"--demo-detour must be a finite number >= 0 (m), got {args.demo_detour:g}")
     if not 0 <= args.rsft_demo_fraction < 1:
         p.error(f"--rsft-demo-fraction must be in [0, 1), got {args.rsft_demo_fraction:g}")
     if args.spo_clip is not None:

@@ -35,5 +35,5 @@ class PiperScriptedConfig(TeleoperatorConfig):
             if not getattr(self, name) > 0:
                 raise ValueError(f"piper_scripted {name} must be positive, got {getattr(self, name)!r}")
         for name in ("noise_m", "detour_m", "pause_s"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"piper_scripted {name} must not be negative, got {getattr(self, name)!r}")
+            if not 0 <= getattr(self, name) < float("inf"):
+                raise ValueError(f"piper_scripted {name} must be a finite number >= 0, got {getattr(self, name)!r}")
