@@ -17,7 +17,10 @@ class PiperScriptedConfig(TeleoperatorConfig):
     first arrives beside the object, off by up to that much, and corrects (``piper_twin.demo``).
 
     ``cycle=true``: once a demonstration is done it waits ``pause_s``, asks the twin to place the objects
-    for the next seed (as a person puts the cube back) and demonstrates again; otherwise it holds."""
+    for the next seed (as a person puts the cube back) and demonstrates again; otherwise it holds.
+
+    ``max_age_s``: a state older than this is waited on for up to as long again (a twin stalled by a loaded
+    machine); then the teleoperator raises (the twin stopped)."""
 
     group: str = "239.74.1.1"
     port: int = 43200

@@ -89,10 +89,7 @@ class PiperScripted(Teleoperator):
     def get_action(self) -> dict[str, float]:
         import mujoco
 
-        snapshot = self._receiver.latest()
-        age = time.time() - snapshot.wall_time_s
-        if age > self.config.max_age_s:
-            raise TimeoutError(f"{self}: no twin state for {age:.2f} s (limit {self.config.max_age_s} s)")
+        snapshot = self._fresh_state()
         # The twin's own clock (it runs in real time): a slow caller does not slow the demonstration down.
         dt = min(max(snapshot.time_s - self._last_time_s, 0.0), _MAX_DT_S)
         self._last_time_s = snapshot.time_s
@@ -111,6 +108,19 @@ class PiperScripted(Teleoperator):
             if now - self._done_since >= self.config.pause_s:
                 self._request_next(snapshot.seed)
         return to_action(tuple(float(t) for t in targets), gripper)
+
+    def _fresh_state(self) -> Any:
+        """The twin's newest state. One older than ``max_age_s`` (a twin stalled on a loaded machine) is
+        waited on for up to ``max_age_s`` more; ``TimeoutError`` when no newer one comes (the twin stopped)."""
+        deadline = time.monotonic() + self.config.max_age_s
+        while True:
+            snapshot = self._receiver.latest()
+            age = time.time() - snapshot.wall_time_s
+            if age <= self.config.max_age_s:
+                return snapshot
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"{self}: no twin state for {age:.2f} s (limit {self.config.max_age_s} s)")
+            time.sleep(0.005)
 
     def _request_next(self, seed: int) -> None:
         from piper_twin.state_channel import request_placement
