@@ -31,7 +31,9 @@ the twin on simulated time: a starved or paused process records the same demonst
 for the real-time emulator.
 
 Every finished part is written at once to ``--results`` (default ``benchmarks/results/twin_table5.json``) with its wall
-time and its episodes, and per task the paired differences of the evaluations (``paired``); a rerun skips the finished
+time and its episodes (an evaluation's also trial by trial, ``outcomes``: its journal's names, 1 for a success, so a
+later run on the same scenes can be paired with it), and per task the paired differences of the evaluations
+(``paired``); a rerun skips the finished
 parts and resumes an unfinished one from its own output (``lerobot-record --resume``, ``lerobot-train --resume``, the
 robot stages' journals). A results file made with other settings is refused, but ``--reuse=<results>
 --reuse-work=<work>`` starts each task from a copy of the parts of another run that its differing settings do not change
@@ -731,7 +733,8 @@ def operator_cost(
 def robot_part(args: argparse.Namespace, task: str, part: str, paths: dict[str, Path], log: Path) -> dict[str, Any]:
     out = paths[part]
     run(stage_command(args, task, part, paths), paths["home"], log)
-    episodes = list(journal(out).values())
+    trials = journal(out)
+    episodes = list(trials.values())
     seconds = [ticks / args.fps for _, ticks in episodes]
     entry: dict[str, Any] = {
         "episodes": len(episodes),
@@ -741,6 +744,7 @@ def robot_part(args: argparse.Namespace, task: str, part: str, paths: dict[str, 
     if part in EVALS:
         rate = json.loads((out / "eval.json").read_text())["success_rate"][TASKS[task]]["mean"]
         entry["success_rate"] = float(rate)
+        entry["outcomes"] = {name: int(ok) for name, (ok, _) in trials.items()}
     elif part == "rsft":
         entry["collection"] = json.loads((out / "collection.json").read_text())[TASKS[task]]
     else:

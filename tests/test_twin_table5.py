@@ -245,6 +245,22 @@ def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5
         )
 
 
+def test_an_evaluations_record_holds_its_rate_its_cost_and_each_trials_outcome(t5, tmp_path, monkeypatch):
+    out = tmp_path / "eval_il"
+    folder = out / "robot_journal" / "episodes" / "press_the_button"
+    folder.mkdir(parents=True)
+    for scene, (ok, ticks) in {0: (True, 40), 1: (False, 100), 2: (True, 60)}.items():
+        np.savez(folder / f"{scene:07d}_001.npz", success=ok, length=ticks)
+    (out / "eval.json").write_text(json.dumps({"success_rate": {"press the button": {"mean": 2 / 3}}}))
+    monkeypatch.setattr(t5, "run", lambda *a, **k: None)  # the stage's command: its outputs are made above
+    paths = {"eval_il": out, "home": tmp_path} | {p: tmp_path / p for p in ("il_policy", "rsft_policy", "spo_policy")}
+    record = t5.robot_part(t5.parse_args([]), "press_button", "eval_il", paths, out / "log")
+    assert record["outcomes"] == {"0000000_001": 1, "0000001_001": 0, "0000002_001": 1}
+    assert record["success_rate"] == pytest.approx(2 / 3) and record["successes"] == 2
+    # 20 s of episodes at 10 fps, and per episode the 3 s rest move and the 10 s of arranging
+    assert record["operator"] == {"episodes": 3, "discarded": 0, "episode_s": 20.0, "person_s": 59.0}
+
+
 def test_the_paired_differences_pair_the_evaluations_trials_by_scene(t5, tmp_path):
     def trials(part: str, outcomes: dict[int, bool]) -> None:
         folder = tmp_path / part / "robot_journal" / "episodes" / "press_the_button"
