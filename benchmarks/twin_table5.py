@@ -22,7 +22,8 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
    ``--robot.type=piper_twin_sim`` (faster than real time) labelled by ``--operator.type=twin``, with the budgets of
    configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise (``--spo-clip``,
    ``--spo-state-pool`` and ``--spo-skip-uniform-for`` give SPO the camera benchmark's trust region and state
-   pool; ``--rsft-demo-fraction`` mixes the task's demonstrations into R-SFT's fine-tune). R-SFT and SPO place their
+   pool; ``--spo-trajectory-mean`` weighs each SPO trajectory equally instead of by its length, Eq. 9's;
+   ``--rsft-demo-fraction`` mixes the task's demonstrations into R-SFT's fine-tune). R-SFT and SPO place their
    scenes from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i (trial i): disjoint from each other and
    from the demonstrations' seeds (checked).
 
@@ -108,6 +109,7 @@ OPTIONAL = {
     "spo_skip_uniform_for": 0,
     "rsft_demo_fraction": 0.0,
     "demo_detour": 0.0,
+    "spo_trajectory_mean": False,
 }
 # The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
 # also changes when the part it starts from (INPUT) does. What --reuse may copy from a results file of other
@@ -123,6 +125,7 @@ CHANGES = {
     **dict.fromkeys(("rsft_batch", "train_seed"), ("rsft", "spo")),
     **dict.fromkeys(("spo_iterations", "spo_groups", "spo_k", "spo_draw_factor", "spo_epochs"), ("spo",)),
     **dict.fromkeys(("spo_minibatch", "spo_lr", "spo_clip", "spo_state_pool", "spo_skip_uniform_for"), ("spo",)),
+    "spo_trajectory_mean": ("spo",),
 }
 # Settings of R-SFT's fine-tune alone: when they are all that changes R-SFT, --reuse copies its collection (the
 # scenes, attempts and successes: R-SFT's journal and buffer) and only the fine-tune runs again.
@@ -198,6 +201,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     a("--spo-clip", default=None, help="low,high: the ratio's clip range (default: the skill objective's)")
     a("--spo-state-pool", type=int, default=None, help="SPO's state_pool: draw from this many scenes, cycling")
     a("--spo-skip-uniform-for", type=int, default=0, help="SPO's skip_uniform_for (with --spo-state-pool)")
+    a("--spo-trajectory-mean", action="store_true", help="SPO's trajectory_mean: every trajectory weighs the same")
     a("--trials", type=int, default=20, help="evaluation trials per checkpoint and task (Table 5: 20)")
     a("--demo-seed", type=int, default=0, help="demo k: seed demo_seed + k (re-recorded ones take the next)")
     a("--train-seed", type=int, default=5000, help="R-SFT's and SPO's state i: seed train_seed + i")
@@ -530,6 +534,7 @@ def stage_command(args: argparse.Namespace, task: str, part: str, paths: dict[st
         *([f"--clip_low={args.spo_clip[0]:g}", f"--clip_high={args.spo_clip[1]:g}"] if args.spo_clip else []),
         *([f"--state_pool={args.spo_state_pool}"] if args.spo_state_pool else []),
         *([f"--skip_uniform_for={args.spo_skip_uniform_for}"] if args.spo_skip_uniform_for else []),
+        *(["--trajectory_mean=true"] if args.spo_trajectory_mean else []),
     ]  # fmt: skip
 
 

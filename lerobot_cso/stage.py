@@ -25,6 +25,7 @@ ADDED_SETTINGS: dict[str, Any] = {
     "state": "full",
     "video_episodes": 0,
     "encoder_freeze": True,
+    "trajectory_mean": False,
     "buffer_frames": "all",
     "ratio": None,
     "advantage": None,

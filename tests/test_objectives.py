@@ -217,8 +217,24 @@ def test_surrogate_units_by_hand():
     assert counts == {"token": 24, "skill": 3, "trajectory": 2}
 
 
+def test_trajectory_mean_weighs_a_long_failure_as_much_as_a_short_success():
+    # a success of 1 skill (A = +0.5) and a failure of 3 skills (A = -0.5) of one group, every ratio 1 (unclipped)
+    new, old, mask = make_logprobs([[[1.0] * 8] * 3, [[1.0] * 8] * 3], [[True, False, False], [True, True, True]])
+    adv = torch.tensor([0.5, -0.5], dtype=torch.float64)
+    eq9, _ = clipped_surrogate_loss(new, old, mask, adv, Granularity.SKILL)
+    assert eq9.item() == pytest.approx(-(0.5 - 3 * 0.5) / 4)  # skill mean: the failure's 3 skills outweigh
+    loss, _ = clipped_surrogate_loss(new, old, mask, adv, Granularity.SKILL, trajectory_mean=True)
+    assert loss.item() == pytest.approx(0.0)  # -(0.5 / 1 - 1.5 / 3) / 2
+    (grad,) = torch.autograd.grad(loss, new)
+    # d loss / d log-prob of a token = -A r / (2 trajectories * the trajectory's skills)
+    assert grad[0, 0] == pytest.approx(torch.full((8,), -0.25, dtype=torch.float64))
+    assert grad[1] == pytest.approx(torch.full((3, 8), 0.5 / 6, dtype=torch.float64))
+    assert int(surrogate_units(mask, 8, Granularity.SKILL, trajectory_mean=True)) == 2
+
+
+@pytest.mark.parametrize("trajectory_mean", [False, True])
 @pytest.mark.parametrize("granularity", list(Granularity))
-def test_row_shards_normalised_by_the_whole_minibatch_add_up_to_it(granularity):
+def test_row_shards_normalised_by_the_whole_minibatch_add_up_to_it(granularity, trajectory_mean):
     """What a data-parallel SPO update relies on: rows split over processes, each loss divided by the whole
     minibatch's unit count, sum to the minibatch's loss and gradient."""
     torch.manual_seed(1)
@@ -226,11 +242,11 @@ def test_row_shards_normalised_by_the_whole_minibatch_add_up_to_it(granularity):
     old = -torch.rand(5, 4, 8, dtype=torch.float64) * 3
     new = (old + 0.2 * torch.randn_like(old)).requires_grad_(True)
     adv = torch.tensor([0.5, -0.25, 1.0, -1.0, 0.1], dtype=torch.float64)
-    whole, _ = clipped_surrogate_loss(new, old, mask, adv, granularity)
+    whole, _ = clipped_surrogate_loss(new, old, mask, adv, granularity, trajectory_mean=trajectory_mean)
     (grad_whole,) = torch.autograd.grad(whole, new)
-    units = surrogate_units(mask, 8, granularity)
+    units = surrogate_units(mask, 8, granularity, trajectory_mean)
     parts = [
-        clipped_surrogate_loss(new[r], old[r], mask[r], adv[r], granularity, n_units=units)[0]
+        clipped_surrogate_loss(new[r], old[r], mask[r], adv[r], granularity, None, units, trajectory_mean)[0]
         for r in (slice(0, 5, 2), slice(1, 5, 2))
     ]
     (grad_parts,) = torch.autograd.grad(sum(parts), new)

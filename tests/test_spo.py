@@ -136,6 +136,19 @@ def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_p
     assert all(h["ratio_mean"] == pytest.approx(1.0) and h["updates"] == 1 for h in history)  # 1 epoch, 1 minibatch
 
 
+def test_trajectory_mean_reaches_the_loss_which_then_counts_trajectories(rsft_policy, tmp_path, monkeypatch):
+    seen, real = [], spo.clipped_surrogate_loss
+
+    def spy(new, old, mask, adv, granularity, clip, n_units, trajectory_mean):
+        seen.append((int(n_units), int((mask.sum(dim=1) > 0).sum()), trajectory_mean))
+        return real(new, old, mask, adv, granularity, clip, n_units, trajectory_mean)
+
+    monkeypatch.setattr(spo, "clipped_surrogate_loss", spy)
+    cfg = make_cfg(rsft_policy, tmp_path, iterations=1, minibatch_trajectories=64, trajectory_mean=True)
+    spo.run_spo(cfg, make_engine=engine_factory([]))
+    assert seen and all(mean and units == trajectories for units, trajectories, mean in seen)
+
+
 def test_target_kl_stops_an_iterations_updates_early(rsft_policy, tmp_path):
     engines: list[ScriptedEngine] = []
     full = spo.run_spo(make_cfg(rsft_policy, tmp_path / "full", lr=1e-2), make_engine=engine_factory(engines))

@@ -106,10 +106,13 @@ def test_the_spo_flags_reach_the_spo_command_and_the_config_only_when_set(t5, tm
     paths = {"rsft_policy": tmp_path / "rsft_policy", "spo": tmp_path / "spo"}
     default = t5.parse_args([])
     assert not t5.OPTIONAL.keys() & t5.config_of(default).keys()  # older results files stay valid
-    assert not [a for a in t5.stage_command(default, "press_button", "spo", paths) if "clip" in a or "pool" in a]
-    args = t5.parse_args(["--spo-clip=0.8,1.2", "--spo-state-pool=32", "--spo-skip-uniform-for=3"])
+    spo_default = t5.stage_command(default, "press_button", "spo", paths)
+    assert not [a for a in spo_default if "clip" in a or "pool" in a or "trajectory_mean" in a]
+    flags = ["--spo-clip=0.8,1.2", "--spo-state-pool=32", "--spo-skip-uniform-for=3", "--spo-trajectory-mean"]
+    args = t5.parse_args(flags)
     spo = t5.stage_command(args, "press_button", "spo", paths)
     assert {"--clip_low=0.8", "--clip_high=1.2", "--state_pool=32", "--skip_uniform_for=3"} <= set(spo)
+    assert "--trajectory_mean=true" in spo and t5.config_of(args)["spo_trajectory_mean"] is True
     assert t5.config_of(args)["spo_clip"] == [0.8, 1.2] and t5.seed_ranges(args)["train"] == range(5000, 5040)
     for bad in ("--spo-clip=1.2,0.8", "--spo-clip=0.8", "--spo-state-pool=0", "--spo-skip-uniform-for=-1"):
         with pytest.raises(SystemExit):

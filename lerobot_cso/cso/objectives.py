@@ -137,14 +137,31 @@ class SurrogateStats:
     ratio_mean: float
 
 
-def surrogate_units(decision_mask: Tensor, n_tokens: int, granularity: Granularity | str) -> Tensor:
-    """How many units (tokens, skills or trajectories) :func:`clipped_surrogate_loss` averages over."""
+def surrogate_units(
+    decision_mask: Tensor, n_tokens: int, granularity: Granularity | str, trajectory_mean: bool = False
+) -> Tensor:
+    """How many units (tokens, skills or trajectories) :func:`clipped_surrogate_loss` averages over; with
+    ``trajectory_mean``, the trajectories."""
     granularity = Granularity(granularity)
+    if trajectory_mean:
+        return (decision_mask.sum(dim=1) > 0).sum()
     if granularity is Granularity.TOKEN:
         return decision_mask.sum() * n_tokens
     if granularity is Granularity.SKILL:
         return decision_mask.sum()
     return (decision_mask.sum(dim=1) > 0).sum()
+
+
+def trajectory_means(objective: Tensor, unit_mask: Tensor) -> Tensor:
+    """Each trajectory's mean objective over its valid units: (N, D[, n]) -> (N,), 0 for one without a unit.
+
+    Not the paper's aggregation: Eq. 9 sums over a trajectory's skills, so a trajectory weighs in proportion to its
+    length; this weighs every trajectory equally (GRPO's per-sequence mean). Where failures run to the time limit
+    and successes stop early, Eq. 9's negative advantages outweigh the positive ones skill by skill, and the
+    objective lowers the probability of what was sampled on the whole; here each group's advantages still sum to 0.
+    """
+    dims = tuple(range(1, objective.ndim))
+    return objective.sum(dim=dims) / unit_mask.sum(dim=dims).clamp(min=1)
 
 
 def clipped_surrogate_loss(
@@ -155,6 +172,7 @@ def clipped_surrogate_loss(
     granularity: Granularity | str = Granularity.SKILL,
     clip: tuple[float, float] | None = None,
     n_units: Tensor | None = None,
+    trajectory_mean: bool = False,
 ) -> tuple[Tensor, SurrogateStats]:
     """PPO-style clipped surrogate at a chosen granularity; returns (loss = -objective, stats).
 
@@ -183,6 +201,10 @@ def clipped_surrogate_loss(
     - ``trajectory`` (GSPO, Eq. 5 with GSPO's length normalisation): r(tau) = exp(mean of the token log-ratios
       over all valid tokens of the trajectory), the geometric mean of the token ratios; mean over the
       trajectories that have at least one valid decision (GSPO's sequence mean).
+
+    ``trajectory_mean`` (token and skill granularity): each trajectory's units are averaged first
+    (:func:`trajectory_means`), then the trajectories, so a long trajectory weighs no more than a short one;
+    ``n_units`` then counts trajectories (:func:`surrogate_units`).
     """
     granularity = Granularity(granularity)
     lower, upper = default_clip(granularity.value) if clip is None else clip
@@ -211,7 +233,12 @@ def clipped_surrogate_loss(
     clipped = ratio.clamp(lower, upper) * unit_adv
     objective = torch.where(unit_mask, torch.minimum(unclipped, clipped), 0.0)
     n_units_here = unit_mask.sum().clamp(min=1)
-    loss = -objective.sum() / (n_units_here if n_units is None else n_units.clamp(min=1))
+    if trajectory_mean and granularity is not Granularity.TRAJECTORY:
+        per_trajectory = trajectory_means(objective, unit_mask)
+        here = (decision_mask.sum(dim=1) > 0).sum().clamp(min=1)
+        loss = -per_trajectory.sum() / (here if n_units is None else n_units.clamp(min=1))
+    else:
+        loss = -objective.sum() / (n_units_here if n_units is None else n_units.clamp(min=1))
 
     with torch.no_grad():
         was_clipped = (clipped < unclipped) & unit_mask

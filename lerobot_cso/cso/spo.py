@@ -128,6 +128,9 @@ class SPOConfig(TrainingStageConfig):
     # With a pool: a state whose group was uniform (all successes or all failures) is not drawn again until
     # this many further iterations have passed (RIPT's rollout-stats skipping, applied to both outcomes).
     skip_uniform_for: int = 0
+    # Average each trajectory's skills (tokens) before the trajectories, so every trajectory weighs the same; false:
+    # Eq. 9's sum over a trajectory's skills, where a failure that runs to the time limit outweighs a short success.
+    trajectory_mean: bool = False
     # Algorithm 1 keeps the observation encoders frozen during SPO; false updates them with the prior (the ablation).
     encoder_freeze: bool = True
     seed: int = 0
@@ -348,15 +351,16 @@ class ClippedObjective(torch.nn.Module):
     def forward(self, rows: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
         batch, old = self.data
         granularity = self.objective.granularity
-        units = surrogate_units(batch.mask[rows], batch.tokens.shape[-1], granularity)
+        n_tokens, mean = batch.tokens.shape[-1], self.cfg.trajectory_mean
+        units = surrogate_units(batch.mask[rows], n_tokens, granularity, mean)
         mine = rows[distributed.shard_rows(len(rows))]
         if not len(mine):  # every process steps together: this one adds no gradient
             return sum(p.sum() for p in trained_parameters(self.policy)) * 0.0, {"weight": 0.0}
         new = padded_logprobs(self.policy, batch, mine, self.cfg.ratio_sampling())
         loss, stats = clipped_surrogate_loss(
-            new, old[mine], batch.mask[mine], batch.advantages[mine], granularity, self.objective.clip, n_units=units
+            new, old[mine], batch.mask[mine], batch.advantages[mine], granularity, self.objective.clip, units, mean
         )
-        weight = float(surrogate_units(batch.mask[mine], batch.tokens.shape[-1], granularity))
+        weight = float(surrogate_units(batch.mask[mine], n_tokens, granularity, mean))
         logged = {**asdict(stats), "loss": loss.item() * float(units) / max(weight, 1.0), "weight": weight}
         processes = distributed.state().num_processes
         return (loss * processes if processes > 1 else loss), logged  # DDP averages: the sum is the minibatch's
