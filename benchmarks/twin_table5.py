@@ -755,7 +755,8 @@ def robot_part(args: argparse.Namespace, task: str, part: str, paths: dict[str, 
     else:
         history = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
         entry["iterations"] = [
-            {k: h.get(k) for k in ("episodes", "success_rate", "rejection_rate", "clip_fraction")} for h in history
+            {k: h.get(k) for k in ("episodes", "success_rate", "rejection_rate", "clip_fraction", "entropy")}
+            for h in history
         ]
     return entry
 

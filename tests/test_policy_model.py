@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -11,7 +13,7 @@ from tiny_data import TASKS, TINY_POLICY_KWARGS, make_synthetic_dataset
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
 from lerobot_cso.policy.modeling_cso import masked_l1, skill_nll
-from lerobot_cso.policy.skill_prior import draw_tokens, filtered_log_probs
+from lerobot_cso.policy.skill_prior import draw_tokens, entropy, filtered_log_probs
 from lerobot_cso.sampling import Sampling
 
 
@@ -146,6 +148,14 @@ def test_padded_chunk_steps_do_not_count():
     is_pad = torch.tensor([[False, False, True, True]])
     assert masked_l1(pred, target, is_pad).item() == pytest.approx(2.0)  # (1 + 3) / 2
     assert masked_l1(pred, target, None).item() == pytest.approx(26.0)  # (1 + 3 + 50 + 50) / 4
+
+
+def test_entropy_of_a_filtered_distribution_by_hand():
+    uniform = filtered_log_probs(torch.zeros(2, 4))
+    assert torch.allclose(entropy(uniform), torch.full((2,), math.log(4)))
+    # top 2 of logits [ln 3, 0, -5]: probabilities 3/4, 1/4, 0 (the excluded token adds 0, not NaN)
+    top2 = filtered_log_probs(torch.tensor([math.log(3.0), 0.0, -5.0]), top_k=2)
+    assert entropy(top2).item() == pytest.approx(-(0.75 * math.log(0.75) + 0.25 * math.log(0.25)))
 
 
 def test_drawn_tokens_follow_the_filtered_distribution():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -134,6 +135,8 @@ def test_first_minibatch_ratio_is_one_and_clip_starts_at_zero(rsft_policy, tmp_p
     # iteration's collection): every ratio is exactly 1, nothing is clipped and the KL is 0.
     assert all(h["clip_fraction"] == 0.0 and abs(h["approx_kl"]) < 1e-6 for h in history)
     assert all(h["ratio_mean"] == pytest.approx(1.0) and h["updates"] == 1 for h in history)  # 1 epoch, 1 minibatch
+    codes = load_policy(rsft_policy)[0].config.vocab_size
+    assert all(0 < h["entropy"] < math.log(codes) for h in history)  # the prior's spread, logged
 
 
 def test_trajectory_mean_reaches_the_loss_which_then_counts_trajectories(rsft_policy, tmp_path, monkeypatch):

@@ -19,8 +19,9 @@ that leaves the top-k keeps a finite ratio.
 
 Every iteration is checkpointed atomically (policy, processors, optimizer, seed cursor, skip memory, history); a rerun
 continues after the last finished iteration. Logged per iteration: SR of the collected groups, rejection
-rate, clip fraction (and its low / high sides), mean ratio, approximate KL, loss, grad norm, number of
-updates (``target_kl`` can end an iteration's epochs early), episodes, env steps, wall time — console table,
+rate, clip fraction (and its low / high sides), mean ratio, approximate KL, the prior's entropy on the iteration's
+decisions, loss, grad norm, number of updates (``target_kl`` can end an iteration's epochs early), episodes, env
+steps, wall time — console table,
 ``log.jsonl``, PNG plots, and wandb when ``--wandb.enable=true``.
 """
 
@@ -71,6 +72,7 @@ LOG_COLUMNS = (
     "clip_high_fraction",
     "ratio_mean",
     "approx_kl",
+    "entropy",
     "loss",
     "grad_norm",
     "updates",
@@ -242,6 +244,15 @@ def padded_logprobs(policy: CSOPolicy, batch: Batch, rows: torch.Tensor, samplin
     return out
 
 
+def mean_entropy(policy: CSOPolicy, batch: Batch, sampling: Sampling) -> float:
+    """Mean per-token entropy (nats) of the policy on the batch's decisions, teacher-forced on the sampled tokens,
+    under ``sampling``'s distribution: how spread the prior is where it acted (logged per iteration, before the
+    updates)."""
+    with torch.no_grad():
+        contexts = decision_contexts(policy, batch, torch.arange(len(batch.tokens)))
+        return policy.token_entropy(contexts, batch.tokens[batch.mask], sampling).mean().item()
+
+
 def trained_parameters(policy: CSOPolicy) -> list[torch.nn.Parameter]:
     """What SPO updates: the prior, and the observation encoders when they are not frozen."""
     return [p for module in (policy.prior, policy.encoders) for p in module.parameters() if p.requires_grad]
@@ -387,6 +398,7 @@ def update(
     n = len(batch.tokens)
     with torch.no_grad():
         old = padded_logprobs(objective.policy, batch, torch.arange(n), cfg.ratio_sampling())
+    entropy = mean_entropy(objective.policy, batch, cfg.ratio_sampling())
     objective.use(batch, old)
     tracker = MetricsTracker(cfg.minibatch_trajectories, n, n, distributed.step_meters())
     rows: list[dict[str, float]] = []
@@ -399,7 +411,8 @@ def update(
             rows.append({**distributed.weighted_mean(logged, weight), "grad_norm": tracker.grad_norm.val})
             if cfg.target_kl is not None and rows[-1]["approx_kl"] > cfg.target_kl:
                 break
-    return {key: float(np.mean([r[key] for r in rows])) for key in UPDATE_STATS} | {"updates": len(rows)}
+    stats = {key: float(np.mean([r[key] for r in rows])) for key in UPDATE_STATS}
+    return stats | {"updates": len(rows), "entropy": entropy}
 
 
 def plot_history(history: list[dict[str, float]], path: Path) -> None:
@@ -517,7 +530,7 @@ def run_spo(cfg: SPOConfig, make_engine: Callable[..., RolloutEngine] | None = N
                     batch = Batch.from_groups(groups, cfg.loss_objective().advantage, policy.config.device)
                     stats |= update(cfg, model, optimizer, accelerator, batch, generator)
             else:  # every group was uniform: nothing to learn from this iteration
-                stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0}
+                stats |= dict.fromkeys(UPDATE_STATS, 0.0) | {"ratio_mean": 1.0, "updates": 0, "entropy": None}
             row = {"iteration": iteration + 1, **stats, "seconds": time.perf_counter() - started}
             history.append(row)
             if main:

@@ -21,6 +21,12 @@ def filtered_log_probs(logits: Tensor, temperature: float = 1.0, top_k: int | No
     return logits.log_softmax(dim=-1)
 
 
+def entropy(log_probs: Tensor) -> Tensor:
+    """Entropy (nats) of each distribution ``log_probs`` (..., V) over its last axis; a token outside the top k
+    (log-prob -inf) adds 0."""
+    return torch.special.entr(log_probs.exp()).sum(dim=-1)
+
+
 def draw_tokens(log_probs: Tensor, greedy: bool = False, generator: torch.Generator | None = None) -> Tensor:
     """One token id per row (B, 1) from log-probs (B, V): the argmax, or a draw by inverse CDF.
 
