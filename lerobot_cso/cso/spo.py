@@ -21,8 +21,7 @@ Every iteration is checkpointed atomically (policy, processors, optimizer, seed 
 continues after the last finished iteration. Logged per iteration: SR of the collected groups, rejection
 rate, clip fraction (and its low / high sides), mean ratio, approximate KL, the prior's entropy on the iteration's
 decisions, loss, grad norm, number of updates (``target_kl`` can end an iteration's epochs early), episodes, env
-steps, wall time — console table,
-``log.jsonl``, PNG plots, and wandb when ``--wandb.enable=true``.
+steps, wall time — console table, ``log.jsonl``, PNG plots, and wandb when ``--wandb.enable=true``.
 """
 
 import json
