@@ -22,7 +22,7 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
    ``--robot.type=piper_twin_sim`` (faster than real time) labelled by ``--operator.type=twin``, with the budgets of
    configs/piper_rsft.yaml / piper_spo.yaml / piper_eval.yaml unless told otherwise (``--spo-clip``,
    ``--spo-state-pool`` and ``--spo-skip-uniform-for`` give SPO the camera benchmark's trust region and state
-   pool; ``--spo-trajectory-mean`` weighs each SPO trajectory equally instead of by its length, Eq. 9's;
+   pool; ``--spo-trajectory-mean`` weighs every SPO trajectory the same, where Eq. 9 weighs it by its length;
    ``--rsft-demo-fraction`` mixes the task's demonstrations into R-SFT's fine-tune). R-SFT and SPO place their
    scenes from ``--train-seed`` + i, the evaluations from ``--eval-seed`` + i (trial i): disjoint from each other and
    from the demonstrations' seeds (checked).
