@@ -40,11 +40,13 @@ robot stages' journals). A results file made with other settings is refused, but
 --reuse-work=<work>`` starts each task from a copy of the parts of another run that its differing settings do not change
 (e.g. a larger SPO budget from the same IL and R-SFT; the copied records say ``reused_from``); when only R-SFT's
 fine-tune settings differ, its collection is copied too and only its fine-tune runs again (the task says
-``rsft_collection_reused_from``). An R-SFT that finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states``
-scenes is recorded as failed (no SPO, no CSO for that task at this budget). The operator-equivalent cost of each part:
-its episodes, their length on the twin (its time is the real arm's time), and what a person would spend at the arm: the
-episodes' seconds, plus per episode the rest move and ``--arrange-s`` (an assumption: placing the objects by hand; the
-twin does it instantly). The defaults and their measured costs: docs/real-arm.md.
+``rsft_collection_reused_from``); when only ``--spo-iterations`` differs for SPO and is larger, SPO's output is copied
+and continued, so its first iterations' episodes are not collected again (``spo_continued_from``). An R-SFT that
+finds fewer than ``--rsft-successes`` successes in ``--rsft-max-states`` scenes is recorded as failed (no SPO, no CSO
+for that task at this budget). The operator-equivalent cost of each part: its episodes, their length on the twin (its
+time is the real arm's time), and what a person would spend at the arm: the episodes' seconds, plus per episode the
+rest move and ``--arrange-s`` (an assumption: placing the objects by hand; the twin does it instantly). The defaults
+and their measured costs: docs/real-arm.md.
 
     python benchmarks/twin_table5.py                      # the full run (defaults), ~1.5 h on a free 2-core VM
     python benchmarks/twin_table5.py --dry-run            # the commands of the parts still to run
@@ -53,6 +55,7 @@ twin does it instantly). The defaults and their measured costs: docs/real-arm.md
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import random
@@ -324,10 +327,11 @@ def load_results(path: Path, config: dict[str, Any], command: str) -> dict[str, 
     return {"config": config, "command": command, "tasks": {}}
 
 
-def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> tuple[list[str], bool]:
+def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> tuple[list[str], bool, bool]:
     """The finished parts of ``task`` in results ``other`` that ``config`` would compute the same: those that no
-    differing setting changes (CHANGES), directly or through the part they start from (INPUT); and whether R-SFT's
-    collection is reusable when R-SFT itself is not (only FINETUNE settings change it)."""
+    differing setting changes (CHANGES), directly or through the part they start from (INPUT); whether R-SFT's
+    collection is reusable when R-SFT itself is not (only FINETUNE settings change it); and whether SPO's output
+    can be continued (only ``spo_iterations`` differs for it, and grew: the stage continues a finished run)."""
     theirs = other["config"]
     differ = [k for k in config.keys() | theirs.keys() if config.get(k) != theirs.get(k)]
     changed = {part for k in differ for part in CHANGES.get(k, PARTS)}
@@ -346,17 +350,26 @@ def reusable_parts(config: dict[str, Any], other: dict[str, Any], task: str) -> 
         and "failed" not in done["rsft"]
         and all(k in FINETUNE for k in differ if "rsft" in CHANGES.get(k, PARTS))
     )
-    return reusable, collection
+    grows = (
+        "spo" not in reusable
+        and INPUT["spo"] in reusable
+        and "spo" in done
+        and "failed" not in done["spo"]
+        and [k for k in differ if "spo" in CHANGES.get(k, PARTS)] == ["spo_iterations"]
+        and config["spo_iterations"] > theirs["spo_iterations"]
+    )
+    return reusable, collection, grows
 
 
 def reuse(args: argparse.Namespace, config: dict[str, Any], task: str, entry: dict[str, Any], base: Path) -> None:
     """Start ``task`` from copies of the reusable parts of ``--reuse``: their folders from ``--reuse-work`` (copied
     under a temporary name, then renamed, so an interrupted copy is redone), then their records."""
     other = json.loads(args.reuse.read_text())
-    parts, collection = reusable_parts(config, other, task)
+    parts, collection, grows = reusable_parts(config, other, task)
     names = {"demos": ["demos", "demos_attempts.jsonl"]}
     copies = [(part, name) for part in parts for name in names.get(part, [part])]
     copies += [("rsft", f"rsft/{name}") for name in COLLECTION] if collection else []
+    copies += [("spo", "spo")] if grows else []
     for part, name in copies:
         source, target = args.reuse_work / task / name, base / name
         if not source.exists():
@@ -380,7 +393,13 @@ def reuse(args: argparse.Namespace, config: dict[str, Any], task: str, entry: di
         for name in ("journal", "robot_journal"):
             rebase_journal(base / "rsft" / name / "spec.json", il_policy)
         entry["rsft_collection_reused_from"] = str(args.reuse)
-    reused = ", ".join(parts + (["R-SFT's collection"] if collection else [])) or "nothing"
+    if grows:  # the SPO command continues it to --spo-iterations, from the copied R-SFT
+        rsft_policy = base / "rsft" / "pretrained_model"
+        rebase_journal(base / "spo" / "robot_journal" / "spec.json", rsft_policy)
+        rebase_record(base / "spo" / "stage.json", rsft_policy)
+        entry["spo_continued_from"] = str(args.reuse)
+    extra = (["R-SFT's collection"] if collection else []) + (["SPO to continue"] if grows else [])
+    reused = ", ".join(parts + extra) or "nothing"
     print(f"[twin_table5] {task}: reused {reused} from {args.reuse}", flush=True)
 
 
@@ -393,6 +412,17 @@ def rebase_journal(spec_path: Path, policy: Path) -> None:
         raise SystemExit(f"error: {spec_path} was made by {made_by.parent}, which is gone or not the reused IL")
     spec["policy"] = str(policy)
     spec_path.write_text(json.dumps(spec, indent=2) + "\n")
+
+
+def rebase_record(record_path: Path, policy: Path) -> None:
+    """Point a copied stage record (``lerobot-cso``'s ``stage.json``) at the copy of its input checkpoint, once that
+    holds the weights the record names by their sha256 (the stage refuses another input by its path)."""
+    record = json.loads(record_path.read_text())
+    digest = hashlib.sha256((policy / "model.safetensors").read_bytes()).hexdigest()[:16]
+    if record["spec"]["policy"]["weights_sha256"] != digest:
+        raise SystemExit(f"error: {record_path} was made from other weights than {policy}")
+    record["spec"]["policy"]["path"] = str(policy.resolve())
+    record_path.write_text(json.dumps(record, indent=2) + "\n")
 
 
 def save_results(path: Path, results: dict[str, Any]) -> None:

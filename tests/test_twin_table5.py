@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import json
 from pathlib import Path
@@ -188,7 +189,7 @@ def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5
     old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
 
     def reused(*flags: str) -> tuple[list[str], bool]:
-        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")
+        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")[:2]
 
     assert reused("--rsft-demo-fraction=0.5") == (["demos", "il", "eval_il"], True)
     assert reused("--rsft-epochs=5", "--rsft-batch=32") == (["demos", "il", "eval_il"], True)
@@ -262,6 +263,54 @@ def test_an_evaluations_record_holds_its_rate_its_cost_and_each_trials_outcome(t
     assert record["success_rate"] == pytest.approx(2 / 3) and record["successes"] == 2
     # 20 s of episodes at 10 fps, and per episode the 3 s rest move and the 10 s of arranging
     assert record["operator"] == {"episodes": 3, "discarded": 0, "episode_s": 20.0, "person_s": 59.0}
+
+
+def test_more_spo_iterations_continue_the_copied_spo_from_the_copied_rsft(t5, tmp_path, capsys):
+    old = {"config": t5.config_of(t5.parse_args(["--demos=3"])), "command": "x", "tasks": {}}
+    old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}
+
+    def grows(*flags: str) -> bool:
+        return t5.reusable_parts(t5.config_of(t5.parse_args(["--demos=3", *flags])), old, "press_button")[2]
+
+    default = t5.parse_args([]).spo_iterations
+    assert grows(f"--spo-iterations={default + 2}") and grows(f"--spo-iterations={default + 2}", "--trials=50")
+    assert not grows(f"--spo-iterations={default - 1}")  # fewer: SPO runs again
+    assert not grows(f"--spo-iterations={default + 2}", "--spo-k=8")  # another SPO setting too
+    assert not grows(f"--spo-iterations={default + 2}", "--rsft-epochs=5")  # from another R-SFT
+
+    old_work = tmp_path / "old" / "press_button"
+    old_rsft = old_work / "rsft" / "pretrained_model"
+    for name in ("demos", "il", "eval_il", "eval_rsft", "spo/state"):
+        (old_work / name).mkdir(parents=True)
+    old_rsft.mkdir(parents=True)
+    (old_rsft / "model.safetensors").write_bytes(b"R-SFT weights")
+    (old_work / "demos_attempts.jsonl").write_text("{}\n")
+    (old_work / "spo" / "robot_journal").mkdir()
+    (old_work / "spo" / "robot_journal" / "spec.json").write_text(json.dumps({"policy": str(old_rsft)}))
+    sha = hashlib.sha256(b"R-SFT weights").hexdigest()[:16]
+    record = {"spec": {"spo": {"iterations": default}, "policy": {"path": str(old_rsft), "weights_sha256": sha}}}
+    (old_work / "spo" / "stage.json").write_text(json.dumps(record | {"complete": True}))
+    old_path = tmp_path / "old.json"
+    t5.save_results(old_path, old)
+    flags = [f"--spo-iterations={default + 2}", f"--reuse={old_path}", f"--reuse-work={tmp_path / 'old'}"]
+    flags = ["--demos=3", "--tasks=press_button", *flags]
+    new_work = tmp_path / "new"
+    t5.main([*flags, f"--work={new_work}", f"--results={tmp_path / 'new.json'}", "--stop-after=eval_rsft"])
+    entry = json.loads((tmp_path / "new.json").read_text())["tasks"]["press_button"]
+    assert list(entry["parts"]) == ["demos", "il", "eval_il", "rsft", "eval_rsft"]  # SPO is run (continued)
+    assert entry["spo_continued_from"] == str(old_path) and "SPO to continue" in capsys.readouterr().out
+    new_rsft = new_work / "press_button" / "rsft" / "pretrained_model"
+    spo = new_work / "press_button" / "spo"
+    assert json.loads((spo / "robot_journal" / "spec.json").read_text()) == {"policy": str(new_rsft)}
+    assert json.loads((spo / "stage.json").read_text())["spec"]["policy"] == {
+        "path": str(new_rsft),
+        "weights_sha256": sha,
+    }
+    assert (spo / "state").is_dir()
+
+    (old_work / "spo" / "stage.json").write_text(json.dumps({"spec": {"policy": {"path": "x", "weights_sha256": "0"}}}))
+    with pytest.raises(SystemExit, match="other weights"):
+        t5.main([*flags, f"--work={tmp_path / 'new2'}", f"--results={tmp_path / 'new2.json'}", "--stop-after=il"])
 
 
 def test_the_paired_differences_pair_the_evaluations_trials_by_scene(t5, tmp_path):
