@@ -56,6 +56,7 @@ from lerobot_cso.cso.objectives import (
 from lerobot_cso.durable import ResumableState, read_json, replace_dir, write_atomic
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.policy import CSOPolicy
+from lerobot_cso.policy.skill_prior import entropy, token_logprob
 from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
@@ -243,13 +244,17 @@ def padded_logprobs(policy: CSOPolicy, batch: Batch, rows: torch.Tensor, samplin
     return out
 
 
-def mean_entropy(policy: CSOPolicy, batch: Batch, sampling: Sampling) -> float:
-    """Mean per-token entropy (nats) of the policy on the batch's decisions, teacher-forced on the sampled tokens,
-    under ``sampling``'s distribution: how spread the prior is where it acted (logged per iteration, before the
-    updates)."""
+def old_logprobs(policy: CSOPolicy, batch: Batch, sampling: Sampling) -> tuple[torch.Tensor, float]:
+    """π_old's teacher-forced per-token log-probs (N, D, n) of the whole batch under ``sampling``'s distribution,
+    zeros where padded, and the prior's mean per-token entropy (nats) on those decisions: how spread it is where it
+    acted (logged per iteration, before the updates). One forward pass, without gradients."""
+    tokens, mask = batch.tokens, batch.mask
     with torch.no_grad():
-        contexts = decision_contexts(policy, batch, torch.arange(len(batch.tokens)))
-        return policy.token_entropy(contexts, batch.tokens[batch.mask], sampling).mean().item()
+        contexts = decision_contexts(policy, batch, torch.arange(len(tokens)))
+        log_distributions = policy.token_log_distributions(contexts, tokens[mask], sampling)
+    old = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
+    old[mask] = token_logprob(log_distributions, tokens[mask])
+    return old, entropy(log_distributions).mean().item()
 
 
 def trained_parameters(policy: CSOPolicy) -> list[torch.nn.Parameter]:
@@ -395,9 +400,7 @@ def update(
     objective = accelerator.unwrap_model(model)
     objective.policy.eval()
     n = len(batch.tokens)
-    with torch.no_grad():
-        old = padded_logprobs(objective.policy, batch, torch.arange(n), cfg.ratio_sampling())
-    entropy = mean_entropy(objective.policy, batch, cfg.ratio_sampling())
+    old, entropy = old_logprobs(objective.policy, batch, cfg.ratio_sampling())
     objective.use(batch, old)
     tracker = MetricsTracker(cfg.minibatch_trajectories, n, n, distributed.step_meters())
     rows: list[dict[str, float]] = []

@@ -23,7 +23,7 @@ from lerobot_cso.policy.configuration_cso import (
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.policy.observation_encoder import ContextEncoder
 from lerobot_cso.policy.skill_autoencoder import SkillAutoencoder
-from lerobot_cso.policy.skill_prior import SkillPrior, entropy, filtered_log_probs
+from lerobot_cso.policy.skill_prior import SkillPrior, filtered_log_probs, token_logprob
 from lerobot_cso.sampling import FULL, Sampling
 
 _NO_DECAY = (nn.LayerNorm, nn.GroupNorm, nn.BatchNorm2d, nn.Embedding)
@@ -174,15 +174,15 @@ class CSOPolicy(PreTrainedPolicy):
         """Sample one skill per row: token ids (B, n) and per-token log-probs of the filtered distribution."""
         return self.prior.sample(context, sampling, generator, use_cache)
 
+    def token_log_distributions(self, context: Tensor, tokens: Tensor, sampling: Sampling = FULL) -> Tensor:
+        """Each token's log-distribution (B, n, V) by teacher forcing on given tokens (B, n) under ``sampling``'s
+        distribution, with gradients."""
+        return filtered_log_probs(self.prior.logits(context, tokens), sampling.temperature, sampling.top_k)
+
     def token_logprobs(self, context: Tensor, tokens: Tensor, sampling: Sampling = FULL) -> Tensor:
         """Per-token log-probs (B, n) of given tokens by teacher forcing under ``sampling``'s distribution, with
         gradients."""
-        logp = filtered_log_probs(self.prior.logits(context, tokens), sampling.temperature, sampling.top_k)
-        return logp.gather(-1, tokens.unsqueeze(-1)).squeeze(-1)
-
-    def token_entropy(self, context: Tensor, tokens: Tensor, sampling: Sampling = FULL) -> Tensor:
-        """Per-token entropy (B, n) of the teacher-forced distributions under ``sampling``'s."""
-        return entropy(filtered_log_probs(self.prior.logits(context, tokens), sampling.temperature, sampling.top_k))
+        return token_logprob(self.token_log_distributions(context, tokens, sampling), tokens)
 
     def decode_skills(self, tokens: Tensor, n_actions: int | None = None) -> Tensor:
         """Token ids (B, n) → the first ``n_actions`` (default: all) normalised actions (B, n_actions, A)."""

@@ -27,6 +27,11 @@ def entropy(log_probs: Tensor) -> Tensor:
     return torch.special.entr(log_probs.exp()).sum(dim=-1)
 
 
+def token_logprob(log_probs: Tensor, tokens: Tensor) -> Tensor:
+    """The log-prob (...) of each token id ``tokens`` (...) under its distribution ``log_probs`` (..., V)."""
+    return log_probs.gather(-1, tokens.unsqueeze(-1)).squeeze(-1)
+
+
 def draw_tokens(log_probs: Tensor, greedy: bool = False, generator: torch.Generator | None = None) -> Tensor:
     """One token id per row (B, 1) from log-probs (B, V): the argmax, or a draw by inverse CDF.
 
