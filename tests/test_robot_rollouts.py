@@ -78,11 +78,12 @@ def il_policy(home) -> Path:
 
 
 def robot_args(arm: EmulatorProcess) -> list[str]:
-    # A loaded 2-core machine: 300 ms of feedback jitter, and time to see the reset of an e-stop.
+    # A loaded 2-core machine: up to 1 s of feedback jitter (the driver's most; a 372 ms gap failed a suite run at
+    # 0.3 s), and time to see the reset of an e-stop. No test here waits for a stale-feedback fault.
     return [
         "--robot.type=piper_follower",
         *arm.args("robot"),
-        "--robot.feedback_timeout_s=0.3",
+        "--robot.feedback_timeout_s=1.0",
         "--robot.enable_timeout_s=5",
     ]
 
