@@ -235,26 +235,36 @@ def decision_contexts(policy: CSOPolicy, batch: Batch, rows: torch.Tensor) -> to
     return policy.encode_context({k: v[rows][mask] for k, v in batch.inputs.items()} | {"task": tasks})
 
 
+def decision_log_distributions(policy: CSOPolicy, batch: Batch, rows: torch.Tensor, sampling: Sampling) -> torch.Tensor:
+    """Teacher-forced log-distributions (M, n, V) of the valid decisions of trajectories ``rows`` under
+    ``sampling``'s distribution (with gradients when enabled)."""
+    tokens = batch.tokens[rows][batch.mask[rows]]
+    return policy.token_log_distributions(decision_contexts(policy, batch, rows), tokens, sampling)
+
+
+def padded_token_logprobs(batch: Batch, rows: torch.Tensor, log_distributions: torch.Tensor) -> torch.Tensor:
+    """The sampled tokens' log-probs (len(rows), D, n) under ``log_distributions`` (those of the valid decisions of
+    ``rows``); zeros where padded."""
+    tokens, mask = batch.tokens[rows], batch.mask[rows]
+    out = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
+    out[mask] = token_logprob(log_distributions, tokens[mask])
+    return out
+
+
 def padded_logprobs(policy: CSOPolicy, batch: Batch, rows: torch.Tensor, sampling: Sampling) -> torch.Tensor:
     """Teacher-forced per-token log-probs (len(rows), D, n) of the valid decisions under ``sampling``'s
     distribution; zeros where padded."""
-    tokens, mask = batch.tokens[rows], batch.mask[rows]
-    out = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
-    out[mask] = policy.token_logprobs(decision_contexts(policy, batch, rows), tokens[mask], sampling)
-    return out
+    return padded_token_logprobs(batch, rows, decision_log_distributions(policy, batch, rows, sampling))
 
 
 def old_logprobs(policy: CSOPolicy, batch: Batch, sampling: Sampling) -> tuple[torch.Tensor, float]:
     """π_old's teacher-forced per-token log-probs (N, D, n) of the whole batch under ``sampling``'s distribution,
     zeros where padded, and the prior's mean per-token entropy (nats) on those decisions: how spread it is where it
     acted (logged per iteration, before the updates). One forward pass, without gradients."""
-    tokens, mask = batch.tokens, batch.mask
+    rows = torch.arange(len(batch.tokens))
     with torch.no_grad():
-        contexts = decision_contexts(policy, batch, torch.arange(len(tokens)))
-        log_distributions = policy.token_log_distributions(contexts, tokens[mask], sampling)
-    old = torch.zeros(tokens.shape, dtype=torch.float32, device=tokens.device)
-    old[mask] = token_logprob(log_distributions, tokens[mask])
-    return old, entropy(log_distributions).mean().item()
+        log_distributions = decision_log_distributions(policy, batch, rows, sampling)
+    return padded_token_logprobs(batch, rows, log_distributions), entropy(log_distributions).mean().item()
 
 
 def trained_parameters(policy: CSOPolicy) -> list[torch.nn.Parameter]:
