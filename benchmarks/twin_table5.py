@@ -112,6 +112,7 @@ OPTIONAL = {
     "spo_skip_uniform_for": 0,
     "rsft_demo_fraction": 0.0,
     "demo_detour": 0.0,
+    "demo_regrasp": 0.0,
     "spo_trajectory_mean": False,
 }
 # The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
@@ -156,6 +157,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=float,
         default=0.0,
         help="m: each demo first arrives up to this far beside the object and corrects (piper_scripted detour_m)",
+    )
+    a(
+        "--demo-regrasp",
+        type=float,
+        default=0.0,
+        help="m: half of the demos first close on nothing up to this far beside the object (piper_scripted regrasp_m)",
     )
     a("--image-size", type=int, default=64, help="front and wrist cameras, square")
     a("--cameras", default="front,wrist", help="the twin's views the policy reads")
@@ -238,8 +245,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--ae-dim must be a positive multiple of {POLICY['ae_heads']} (the heads), got {args.ae_dim}")
     if args.image_shift < 0:
         p.error(f"--image-shift must be >= 0, got {args.image_shift}")
-    if not 0 <= args.demo_detour < float("inf"):
-        p.error(f"--demo-detour must be a finite number >= 0 (m), got {args.demo_detour:g}")
+    for flag in ("demo_detour", "demo_regrasp"):
+        if not 0 <= getattr(args, flag) < float("inf"):
+            p.error(f"--{flag.replace('_', '-')} must be a finite number >= 0 (m), got {getattr(args, flag):g}")
     if not 0 <= args.rsft_demo_fraction < 1:
         p.error(f"--rsft-demo-fraction must be in [0, 1), got {args.rsft_demo_fraction:g}")
     if args.spo_clip is not None:
@@ -641,6 +649,7 @@ def record_demos(args: argparse.Namespace, task: str, paths: dict[str, Path], lo
             sys.executable, str(Path(__file__).resolve()), "_record", json.dumps(hook), *robot,
             "--teleop.type=piper_scripted", "--teleop.cycle=false", f"--teleop.seed={args.demo_seed + have}",
             f"--teleop.detour_m={args.demo_detour:g}",
+            f"--teleop.regrasp_m={args.demo_regrasp:g}",
             *teleop, f"--dataset.repo_id=local/twin_{task}", f"--dataset.root={root}",
             f"--dataset.single_task={TASKS[task]}", f"--dataset.num_episodes={args.demos - have}",
             f"--dataset.episode_time_s={args.demo_window_s[task]:g}", "--dataset.reset_time_s=0",
@@ -726,22 +735,26 @@ def journal(out: Path) -> dict[str, tuple[bool, int]]:
     return episodes
 
 
+def paired_difference(a: dict[str, bool | int], b: dict[str, bool | int]) -> dict[str, Any]:
+    """SR(a) - SR(b) over the same trials (outcomes by trial name): the mean, its 95 % CI (normal, from the
+    per-trial differences), and the trials a won and lost."""
+    trials = sorted(a)
+    d = np.array([a[t] for t in trials], float) - np.array([b[t] for t in trials], float)
+    mean, half = float(d.mean()), 1.96 * float(d.std(ddof=1)) / np.sqrt(len(d))
+    return {
+        "mean": mean, "ci95": [mean - half, mean + half], "won": int((d > 0).sum()), "lost": int((d < 0).sum()),
+        "trials": len(d),
+    }  # fmt: skip
+
+
 def paired_differences(base: Path) -> dict[str, dict[str, Any]]:
-    """Per pair of PAIRS whose evaluations ran the same trials: the mean of SR(a) - SR(b) over the trials, its 95 %
-    CI (normal, from the per-trial differences), and the trials a won and lost."""
+    """:func:`paired_difference` per pair of PAIRS whose evaluations ran the same trials."""
     outcomes = {method: {t: ok for t, (ok, _) in journal(base / part).items()} for part, method in EVALS.items()}
-    pairs = {}
-    for a, b in PAIRS:
-        trials = sorted(outcomes[a])
-        if len(trials) < 2 or trials != sorted(outcomes[b]):
-            continue
-        d = np.array([outcomes[a][t] for t in trials], float) - np.array([outcomes[b][t] for t in trials], float)
-        mean, half = float(d.mean()), 1.96 * float(d.std(ddof=1)) / np.sqrt(len(d))
-        pairs[f"{a}_minus_{b}"] = {
-            "mean": mean, "ci95": [mean - half, mean + half], "won": int((d > 0).sum()), "lost": int((d < 0).sum()),
-            "trials": len(d),
-        }  # fmt: skip
-    return pairs
+    return {
+        f"{a}_minus_{b}": paired_difference(outcomes[a], outcomes[b])
+        for a, b in PAIRS
+        if len(outcomes[a]) >= 2 and sorted(outcomes[a]) == sorted(outcomes[b])
+    }
 
 
 def summary(values: np.ndarray) -> dict[str, float] | None:

@@ -1,0 +1,74 @@
+"""``benchmarks/twin_dev_scenes.py`` on hand-made evaluation journals: the paired differences it stores, the scene
+agreement it counts, and a bad folder refused without touching the results file."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "twin_dev_scenes.py"
+
+
+def journal(folder: Path, outcomes: list[int]) -> Path:
+    """An evaluation's robot journal as ``lerobot-cso eval`` leaves it: one npz per trial (``state_attempt``)."""
+    episodes = folder / "robot_journal" / "episodes" / "put_the_cube_in_the_bowl"
+    episodes.mkdir(parents=True)
+    for state, ok in enumerate(outcomes):
+        np.savez(episodes / f"{state:07d}_001.npz", success=np.array(bool(ok)), length=np.array(200 - 100 * ok))
+    return folder
+
+
+def run(results: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(SCRIPT), f"--results={results}", *args], capture_output=True, text=True, cwd=ROOT
+    )
+
+
+def test_add_pairs_trials_by_scene_and_agreement_counts_scenes_by_checkpoints_solving_them(tmp_path):
+    a = [1] * 30 + [0] * 70  # 30 %
+    b = [1] * 20 + [0] * 10 + [1] * 10 + [0] * 60  # 30 %: 20 scenes shared with a, 10 won by each alone
+    results = tmp_path / "dev.json"
+    first = {f"{s:07d}_001": ok for s, ok in enumerate(a)}
+    results.write_text(
+        json.dumps({"checkpoints": {"a": {"outcomes": first}}, "paired": {}, "greedy": {"checkpoints": {}}})
+    )
+    out = run(results, "add", "--name=b", f"--eval={journal(tmp_path / 'b', b)}", "--checkpoint=b's")
+    assert out.returncode == 0, out.stderr
+    stored = json.loads(results.read_text())
+    assert stored["checkpoints"]["b"]["successes"] == 30 and stored["checkpoints"]["b"]["checkpoint"] == "b's"
+    pair = stored["paired"]["b_minus_a"]
+    # differences: +1 on 10 trials, -1 on 10, 0 on 80 -> mean 0, sd sqrt(20/99), half-width 1.96 sd / 10
+    half = 1.96 * np.sqrt(20 / 99) / 10
+    assert (pair["won"], pair["lost"], pair["trials"]) == (10, 10, 100)
+    assert pair["mean"] == 0.0 and np.allclose(pair["ci95"], [-half, half])
+
+    greedy = [1] * 10 + [0] * 90  # won the first 10 scenes, which a and b both solved
+    out = run(
+        results, "add", "--name=g", f"--eval={journal(tmp_path / 'g', greedy)}", "--checkpoint=g", "--section=greedy"
+    )
+    assert out.returncode == 0, out.stderr
+    out = run(results, "agreement", "--names=a,b")
+    assert out.returncode == 0, out.stderr
+    stored = json.loads(results.read_text())
+    # solved by both: 20; by one: 10 + 10; by none: 60
+    assert stored["scene_agreement"]["scenes_solved_by_k"] == [60, 20, 20]
+    assert np.allclose(stored["scene_agreement"]["expected_if_independent"], [49, 42, 9], atol=0.5)  # 100 p^k q^(2-k)
+    # a: 10 / 10 where g won, 20 / 90 where it lost
+    assert np.allclose(stored["greedy"]["checkpoints"]["g"]["sampled_rate_where_greedy_won_lost"]["a"], [1.0, 20 / 90])
+
+
+def test_a_folder_without_a_full_evaluation_is_refused_and_the_file_kept(tmp_path):
+    results = tmp_path / "dev.json"
+    results.write_text(json.dumps({"checkpoints": {}, "paired": {}, "greedy": {"checkpoints": {}}}))
+    before = results.read_bytes()
+    out = run(results, "add", "--name=x", f"--eval={journal(tmp_path / 'x', [1] * 40)}", "--checkpoint=x")
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        f"twin_dev_scenes: ValueError: {tmp_path / 'x'} holds 40 finished trials, not 100"
+    ]
+    assert results.read_bytes() == before
