@@ -178,12 +178,14 @@ def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5
         with pytest.raises(SystemExit):
             t5.parse_args([bad])
         assert "--rsft-demo-fraction must be in [0, 1)" in capsys.readouterr().err
-    assert "demo_detour" not in t5.config_of(t5.parse_args([]))  # older results files stay valid
-    assert t5.config_of(t5.parse_args(["--demo-detour=0.04"]))["demo_detour"] == 0.04
-    for bad in ("--demo-detour=nan", "--demo-detour=inf", "--demo-detour=-0.01"):
-        with pytest.raises(SystemExit):
-            t5.parse_args([bad])
-        assert "--demo-detour must be a finite number >= 0" in capsys.readouterr().err
+    for flag in ("demo-detour", "demo-regrasp"):
+        key = flag.replace("-", "_")
+        assert key not in t5.config_of(t5.parse_args([]))  # older results files stay valid
+        assert t5.config_of(t5.parse_args([f"--{flag}=0.04"]))[key] == 0.04
+        for bad in ("nan", "inf", "-0.01"):
+            with pytest.raises(SystemExit):
+                t5.parse_args([f"--{flag}={bad}"])
+            assert f"--{flag} must be a finite number >= 0" in capsys.readouterr().err
 
     old = {"config": t5.config_of(t5.parse_args(["--demos=3"])), "command": "x", "tasks": {}}
     old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}

@@ -80,7 +80,9 @@ class PiperScripted(Teleoperator):
             )
         scene = get_scene(snapshot.scene)
         model = compile_scene(scene)
-        self._demo = ScriptedDemo(scene, model, self.config.speed_m_s, self.config.noise_m, self.config.detour_m)
+        self._demo = ScriptedDemo(
+            scene, model, self.config.speed_m_s, self.config.noise_m, self.config.detour_m, self.config.regrasp_m
+        )
         self._data = mujoco.MjData(model)
         self._receiver = receiver
         self._last_time_s = snapshot.time_s

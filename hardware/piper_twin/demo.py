@@ -9,6 +9,11 @@ With ``detour_m`` > 0 a demonstration first reaches a point beside each approach
 object), off by ``detour_m`` / 2 … ``detour_m`` in a random horizontal direction, and then corrects to it, as a
 person's coarse move is followed by a fine one. Without it every demonstration arrives exactly above the
 object, and a policy that arrives a little beside it has never seen what to do there.
+
+With ``regrasp_m`` > 0, half of the demonstrations (drawn per demonstration) first close the gripper on nothing:
+``regrasp_m`` / 2 … ``regrasp_m`` beside the grasp point, across the direction the fingers close in, so that they
+pass beside the object; then they reopen, rise ``REGRASP_RISE_M`` and go on to the real grasp. A policy whose
+grasp misses has seen the gripper close to nothing and what follows it; without it every close holds the object.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from .scenes import CubeInBowl, PressButton, Scene
 OPEN_M = 0.06
 ABOVE_M = 0.12
 REACHED_M = 0.01
+REGRASP_RISE_M = 0.04
+CLOSE_S, REOPEN_S = 0.8, 0.3
 
 
 @dataclass(frozen=True)
@@ -63,7 +70,7 @@ def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData)
     return [
         Waypoint(grasp + [0, 0, ABOVE_M - grasp[2]], OPEN_M, approach=True),
         Waypoint(grasp, OPEN_M),
-        Waypoint(grasp, 0.0, 0.8),
+        Waypoint(grasp, 0.0, CLOSE_S),
         Waypoint(lift, 0.0),
         Waypoint(over_bowl, 0.0),
         Waypoint(drop, 0.0),
@@ -79,6 +86,25 @@ def plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list
     if isinstance(scene, CubeInBowl):
         return _cube_in_bowl(scene, model, data)
     raise ValueError(f"no scripted demonstration for scene {scene.name!r}")
+
+
+def missed_grasp(waypoints: list[Waypoint], yaw: float, rng: np.random.Generator, size_m: float) -> list[Waypoint]:
+    """``waypoints`` with, before the descent to their first close, a close on nothing beside it (``size_m`` / 2 …
+    ``size_m`` off across the fingers' closing direction, either side), the reopen and the rise; unchanged when
+    no waypoint closes the gripper."""
+    closes = [k for k in range(1, len(waypoints)) if waypoints[k].gripper_m < waypoints[k - 1].gripper_m]
+    if not closes:
+        return waypoints
+    descent = waypoints[closes[0] - 1]
+    across = np.array([math.cos(yaw), math.sin(yaw), 0.0]) * rng.choice([-1.0, 1.0]) * rng.uniform(size_m / 2, size_m)
+    beside = descent.position + across
+    miss = [
+        Waypoint(beside, descent.gripper_m),
+        Waypoint(beside, 0.0, CLOSE_S),
+        Waypoint(beside, descent.gripper_m, REOPEN_S),
+        Waypoint(beside + [0.0, 0.0, REGRASP_RISE_M], descent.gripper_m),
+    ]
+    return waypoints[: closes[0] - 1] + miss + waypoints[closes[0] - 1 :]
 
 
 def detour(rng: np.random.Generator, size_m: float) -> np.ndarray:
@@ -97,9 +123,10 @@ class ScriptedDemo:
         speed_m_s: float = 0.12,
         noise_m: float = 0.003,
         detour_m: float = 0.0,
+        regrasp_m: float = 0.0,
     ) -> None:
         self.scene, self.model = scene, model
-        self.speed_m_s, self.noise_m, self.detour_m = speed_m_s, noise_m, detour_m
+        self.speed_m_s, self.noise_m, self.detour_m, self.regrasp_m = speed_m_s, noise_m, detour_m, regrasp_m
         self.ik = ArmIK(model)
         self.waypoints: list[Waypoint] = []
         self.index = 0
@@ -125,6 +152,8 @@ class ScriptedDemo:
             if w.approach and self.detour_m > 0:
                 self.waypoints.append(Waypoint(w.position + j + detour(rng, self.detour_m), w.gripper_m))
             self.waypoints.append(Waypoint(w.position + j, w.gripper_m, w.dwell_s, w.approach))
+        if self.regrasp_m > 0 and rng.random() < 0.5:
+            self.waypoints = missed_grasp(self.waypoints, self._yaw, rng, self.regrasp_m)
         self.index = 0
         self._joints = np.asarray(joints_rad, dtype=float)
         self._point = self.ik.grasp_pose(self._joints)[0]

@@ -269,6 +269,36 @@ def test_a_scripted_demonstration_does_the_task_through_the_real_driver(scene, s
         assert rig.now() - start < 12.0  # press ~4 s, cube ~9 s at 0.12 m/s
 
 
+def test_a_demonstration_with_a_missed_grasp_closes_beside_the_cube_reopens_and_still_succeeds():
+    """``regrasp_m``: the first close lands 3-6 cm beside the grasp point, across the fingers' closing direction, the
+    fingers close on nothing (the cube does not move), reopen, rise, and the grasp that follows succeeds."""
+    plant = TwinPlant("cube_in_bowl", 2)
+    cube = plant.model.body("cube").id
+    with make_rig(plant=plant, speed_percent=100) as rig:
+        demo = ScriptedDemo(plant.scene, plant.model, regrasp_m=0.06)
+        demo.start(plant.data, rig.arm.joints_rad, np.random.default_rng(2))  # this seed's demo misses first
+        plain = ScriptedDemo(plant.scene, plant.model)
+        plain.start(plant.data, rig.arm.joints_rad, np.random.default_rng(2))
+        assert len(demo.waypoints) == len(plain.waypoints) + 4
+        descent, miss = plain.waypoints[1], demo.waypoints[1:5]
+        assert [(w.gripper_m, w.dwell_s) for w in miss] == [(0.06, 0.0), (0.0, 0.8), (0.06, 0.3), (0.06, 0.0)]
+        across = miss[0].position - descent.position
+        assert across[2] == 0 and 0.03 <= np.linalg.norm(across) <= 0.06
+        assert abs(across @ [-math.sin(demo._yaw), math.cos(demo._yaw), 0.0]) < 1e-9  # not along the closing fingers
+        np.testing.assert_allclose(miss[3].position - miss[0].position, [0, 0, 0.04])
+        before, closed_on_nothing = plant.data.xpos[cube].copy(), None
+        start = rig.now()
+        while not demo.done and rig.now() - start < 20.0:
+            joints, gripper = demo.step(1 / 30, rig.driver.checked_state().joint_positions_rad)
+            rig.driver.command(joints, gripper)
+            rig.sleep(1 / 30)
+            if demo.index == 3 and closed_on_nothing is None:  # the close's dwell is over: the fingers shut
+                closed_on_nothing = plant.state().gripper_m, plant.data.xpos[cube].copy()
+        assert demo.done and plant.succeeded(), (demo.index, rig.now() - start)
+        width, cube_then = closed_on_nothing
+        assert width < 0.005 and np.linalg.norm(cube_then - before) < 0.002
+
+
 class Publishing:
     """Publishes a plant's state every 10 ms on a thread and places its objects on request, as
     ``piper-emulator --physics`` does."""
