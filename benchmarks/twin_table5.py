@@ -606,12 +606,31 @@ def demos_in(root: Path) -> int:
     return json.loads(info.read_text())["total_episodes"] if info.is_file() else 0
 
 
+def unreadable_parquet(root: Path) -> str | None:
+    """The first parquet file of a dataset that cannot be opened, with why; None when all open."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for path in sorted(root.rglob("*.parquet")):
+        try:
+            pq.read_metadata(path)
+        except (OSError, pa.ArrowException) as exc:
+            return f"{path}: {exc}"
+    return None
+
+
 def record_demos(args: argparse.Namespace, task: str, paths: dict[str, Path], log: Path) -> dict[str, Any]:
     """Part 1: the demonstrations, by ``lerobot-record`` (see the module doc); a rerun adds the ones still missing
     (``--resume=true``), and a recording that fails (a starved real-time process) is resumed up to 3 times in a
     row without progress."""
     root, attempts_log = paths["demos"], paths["demos_log"]
     stalled, have = 0, demos_in(root)
+    if have and have < args.demos and (broken := unreadable_parquet(root)):
+        raise RuntimeError(
+            f"{task}: the {have} demonstrations in {root} cannot be resumed ({broken}): a recording that crashed "
+            f"leaves LeRobot's files unfinished and their episodes lost; delete {root} and {attempts_log} to record "
+            "them again"
+        )
     while have < args.demos:
         if stalled == 3:
             raise RuntimeError(

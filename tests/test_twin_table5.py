@@ -331,3 +331,23 @@ def test_the_paired_differences_pair_the_evaluations_trials_by_scene(t5, tmp_pat
     cso_il = pairs["cso_minus_il"]
     assert cso_il["ci95"] == pytest.approx([-0.24, 0.74])
     assert {k: cso_il[k] for k in ("mean", "won", "lost", "trials")} == {"mean": 0.25, "won": 1, "lost": 0, "trials": 4}
+
+
+def test_demonstrations_a_crash_left_unreadable_are_refused_with_what_to_do(t5, tmp_path):
+    """A recording killed natively leaves LeRobot's parquet files without their footer: resuming it cannot work,
+    so the driver says so (and how to start over) instead of retrying lerobot-record."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = tmp_path / "demos"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").write_text(json.dumps({"total_episodes": 20}))
+    data = root / "data" / "chunk-000" / "file-000.parquet"
+    data.parent.mkdir(parents=True)
+    pq.write_table(pa.table({"index": list(range(100))}), data)
+    assert t5.unreadable_parquet(root) is None
+    data.write_bytes(data.read_bytes()[:-40])  # the footer never written
+    paths = {"demos": root, "demos_log": tmp_path / "demos_attempts.jsonl"}
+    with pytest.raises(RuntimeError, match=r"20 demonstrations in .* cannot be resumed \(.*file-000.parquet: .*delete"):
+        t5.record_demos(t5.parse_args(["--demos=100"]), "cube_in_bowl", paths, tmp_path / "log.txt")
+    assert data.exists()  # nothing deleted for the user
