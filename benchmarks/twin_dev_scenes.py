@@ -13,9 +13,15 @@ solved it, against as many independent coins at their rates (20 000 simulated dr
 evaluation (a deterministic policy on a deterministic twin: its outcome is a function of the scene) the sampled
 evaluations' rate on the scenes it won and on those it lost.
 
+``failures`` sorts an evaluation's failed trials by what its gripper did (from the journal: the commanded opening
+closing, the measured opening 1 s later, under 5 mm being a close on nothing; where the grasp point was, by the
+twin's forward kinematics, when the gripper next opened after holding something, against the scene's bowl) and files
+the counts under the evaluation's ``failure_modes``.
+
     python benchmarks/twin_dev_scenes.py add --name=il_n4 --eval=outputs/s33/eval_dev_il_nas4 \\
         --checkpoint="session 30's IL with --policy.n_action_steps=4" --command="the eval_command with ..."
     python benchmarks/twin_dev_scenes.py agreement --names=il,rsft,cso_6,cso_12,cso_trajectory_mean,rsft_60
+    python benchmarks/twin_dev_scenes.py failures --name=il_regrasp --eval=outputs/s33/eval_dev_il_regrasp
 """
 
 import argparse
@@ -31,6 +37,7 @@ from lerobot_cso.durable import write_atomic
 
 RESULTS = Path(__file__).parent / "results" / "twin_cube_spo_dev.json"
 TRIALS = 100
+SCENE_SEED = 300000  # the development scenes' first seed: trial i ran scene SCENE_SEED + i
 
 
 def add(results: dict[str, Any], args: argparse.Namespace) -> str:
@@ -88,6 +95,54 @@ def agreement(results: dict[str, Any], args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
+CLOSED_M, EMPTY_M, OPEN_M, SETTLE_STEPS = 0.01, 0.005, 0.03, 10  # commanded closed / measured empty / reopened
+
+
+def failure_mode(actions: np.ndarray, states: np.ndarray, bowl_xy: np.ndarray, grasp_point: Any) -> str:
+    """What a failed trial's gripper did: never closed, closed only on nothing, or held something and then opened
+    (where, against the bowl) or not."""
+    commanded, measured = actions[:, 6], states[:, 6]
+    closes = [t for t in range(1, len(commanded)) if commanded[t] < CLOSED_M <= commanded[t - 1]]
+    settled = [t for t in closes if t + SETTLE_STEPS < len(measured)]
+    held = [t for t in settled if measured[t + SETTLE_STEPS] >= EMPTY_M]
+    if not closes:
+        return "never closed"
+    if not held:
+        return "only closes on nothing"
+    reopened = [t for t in range(held[0], len(commanded)) if commanded[t] > OPEN_M]
+    if not reopened:
+        return "held the cube to the end"
+    point = grasp_point(states[reopened[0], :6])
+    if np.linalg.norm(point[:2] - bowl_xy) < 0.10:
+        return "held the cube, opened within 10 cm of the bowl"
+    return f"held the cube, opened away from the bowl {'below' if point[2] < 0.06 else 'above'} 6 cm"
+
+
+def failures(results: dict[str, Any], args: argparse.Namespace) -> str:
+    from piper_twin.ik import ArmIK
+    from piper_twin.plant import TwinPlant
+
+    entry = results["checkpoints"][args.name]
+    plant = TwinPlant("cube_in_bowl", 0)
+    ik = ArmIK(plant.model)
+    modes: dict[str, int] = {}
+    for path in sorted(args.eval.glob("robot_journal/episodes/*/*.npz")):
+        with np.load(path) as episode:
+            if bool(episode["success"]):
+                continue
+            actions, states = episode["actions"], episode["states"]
+        plant.reset(SCENE_SEED + int(path.stem.split("_")[0]))
+        bowl = plant.data.mocap_pos[plant.model.body("bowl").mocapid[0]][:2].copy()
+        mode = failure_mode(actions, states, bowl, lambda q: ik.grasp_pose(q)[0])
+        modes[mode] = modes.get(mode, 0) + 1
+    if sum(modes.values()) != entry["trials"] - entry["successes"]:
+        raise ValueError(
+            f"{args.eval} does not hold the {entry['trials'] - entry['successes']} failures of {args.name}"
+        )
+    entry["failure_modes"] = dict(sorted(modes.items()))
+    return f"{args.name}: " + ", ".join(f"{k} {v}" for k, v in entry["failure_modes"].items())
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--results", type=Path, default=RESULTS)
@@ -100,10 +155,13 @@ def main() -> int:
     a.add_argument("--section", choices=("checkpoints", "greedy"), default="checkpoints")
     g = sub.add_parser("agreement", help="how much of a trial the scene decides")
     g.add_argument("--names", required=True, help="comma-separated sampled evaluations")
+    f = sub.add_parser("failures", help="sort an evaluation's failed trials by what the gripper did")
+    f.add_argument("--name", required=True, help="an evaluation already added")
+    f.add_argument("--eval", type=Path, required=True, help="its lerobot-cso eval --output_dir")
     args = ap.parse_args()
     try:
         results = json.loads(args.results.read_text())
-        report = add(results, args) if args.command_name == "add" else agreement(results, args)
+        report = {"add": add, "agreement": agreement, "failures": failures}[args.command_name](results, args)
     except (OSError, KeyError, ValueError) as e:
         print(f"twin_dev_scenes: {type(e).__name__}: {e}", file=sys.stderr)
         return 2

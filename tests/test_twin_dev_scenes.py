@@ -3,6 +3,7 @@ agreement it counts, and a bad folder refused without touching the results file.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -72,3 +73,27 @@ def test_a_folder_without_a_full_evaluation_is_refused_and_the_file_kept(tmp_pat
         f"twin_dev_scenes: ValueError: {tmp_path / 'x'} holds 40 finished trials, not 100"
     ]
     assert results.read_bytes() == before
+
+
+def test_a_failed_trial_is_sorted_by_what_its_gripper_did(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("twin_dev_scenes", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def trial(commanded: list[float], measured: list[float]) -> tuple[np.ndarray, np.ndarray]:
+        actions, states = np.zeros((len(commanded), 7)), np.zeros((len(measured), 7))
+        actions[:, 6], states[:, 6] = commanded, measured
+        return actions, states
+
+    bowl = np.array([0.3, 0.1])
+    at = {"bowl": lambda q: np.array([0.3, 0.15, 0.1]), "table": lambda q: np.array([0.3, -0.1, 0.03])}
+    open_, shut = [0.06] * 5, [0.0] * 15
+    assert module.failure_mode(*trial(open_ * 4, open_ * 4), bowl, at["table"]) == "never closed"
+    empty = trial(open_ + shut + open_ + shut, [0.06] * 5 + [0.0] * 15 + [0.06] * 5 + [0.0] * 15)
+    assert module.failure_mode(*empty, bowl, at["table"]) == "only closes on nothing"
+    held = trial(open_ + shut + open_, [0.06] * 5 + [0.03] * 20)  # the fingers stop on the cube (3 cm)
+    assert module.failure_mode(*held, bowl, at["table"]) == "held the cube, opened away from the bowl below 6 cm"
+    assert module.failure_mode(*held, bowl, at["bowl"]) == "held the cube, opened within 10 cm of the bowl"
+    to_the_end = trial(open_ + shut, [0.06] * 5 + [0.03] * 15)
+    assert module.failure_mode(*to_the_end, bowl, at["table"]) == "held the cube to the end"
