@@ -20,14 +20,12 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from piper_can.firmware import PlantCommand
+from piper_twin import demo
+from piper_twin.plant import TwinPlant
+from piper_twin.scenes import Scene
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "hardware"))
-from piper_can.firmware import PlantCommand  # noqa: E402
-from piper_twin import demo  # noqa: E402
-from piper_twin.plant import TwinPlant  # noqa: E402
-
-from lerobot_cso.durable import write_atomic  # noqa: E402
+from lerobot_cso.durable import write_atomic
 
 REST_RAD = (0.0, 1.0, -1.0, 0.0, 1.0, 0.0)  # the Table 5 runs' initial pose
 DT_S, EPISODE_S = 0.01, 20.0
@@ -42,7 +40,7 @@ def trial(seed: int, offset_mm: float, yaw_error_deg: float, rng: np.random.Gene
     offset = np.array([math.cos(angle), math.sin(angle), 0.0]) * offset_mm / 1000
     yaw_error = rng.choice([-1.0, 1.0]) * math.radians(yaw_error_deg)
 
-    def off_plan(scene, model, data):  # noqa: ANN001, ANN202 (demo.plan's signature)
+    def off_plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[demo.Waypoint], float]:
         waypoints, yaw = PLAN(scene, model, data)
         moved = [
             demo.Waypoint(w.position + offset, w.gripper_m, w.dwell_s, w.approach) for w in waypoints[:GRASP_WAYPOINTS]
