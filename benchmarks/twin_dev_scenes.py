@@ -41,6 +41,7 @@ SCENE_SEED = 300000  # the development scenes' first seed: trial i ran scene SCE
 
 
 def add(results: dict[str, Any], args: argparse.Namespace) -> str:
+    """File one evaluation's outcomes under ``--name`` (and, unless greedy, its paired differences); the report."""
     outcomes = {trial: int(ok) for trial, (ok, _) in journal(args.eval).items()}
     if len(outcomes) != TRIALS:
         raise ValueError(f"{args.eval} holds {len(outcomes)} finished trials, not {TRIALS}")
@@ -67,6 +68,7 @@ def add(results: dict[str, Any], args: argparse.Namespace) -> str:
 
 
 def agreement(results: dict[str, Any], args: argparse.Namespace) -> str:
+    """Scenes solved by k of the named evaluations against independent coins, and the greedy splits; the report."""
     names = args.names.split(",")
     scenes = sorted(results["checkpoints"][names[0]]["outcomes"])
     wins = np.array([[results["checkpoints"][n]["outcomes"][s] for n in names] for s in scenes])
@@ -119,6 +121,7 @@ def failure_mode(actions: np.ndarray, states: np.ndarray, bowl_xy: np.ndarray, g
 
 
 def failures(results: dict[str, Any], args: argparse.Namespace) -> str:
+    """File the failure modes of an evaluation already added (its journal at ``--eval``); the report."""
     from piper_twin.ik import ArmIK
     from piper_twin.plant import TwinPlant
 
