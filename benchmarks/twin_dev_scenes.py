@@ -165,10 +165,10 @@ def main() -> int:
     try:
         results = json.loads(args.results.read_text())
         report = {"add": add, "agreement": agreement, "failures": failures}[args.command_name](results, args)
+        write_atomic(args.results, (json.dumps(results, indent=1, ensure_ascii=False) + "\n").encode())
     except (OSError, KeyError, ValueError) as e:
         print(f"twin_dev_scenes: {type(e).__name__}: {e}", file=sys.stderr)
         return 2
-    write_atomic(args.results, (json.dumps(results, indent=1, ensure_ascii=False) + "\n").encode())
     print(report)
     return 0
 

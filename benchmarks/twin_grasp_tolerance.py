@@ -13,6 +13,7 @@ through the simulated firmware instead; what this measures is the scene's tolera
 import argparse
 import json
 import math
+import os
 import shlex
 import sys
 import time
@@ -69,6 +70,10 @@ def main() -> int:
     ap.add_argument("--first-seed", type=int, default=300000, help="the development scenes by default")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    if args.scenes < 1:
+        ap.error(f"--scenes must be >= 1, got {args.scenes}")
+    if args.out and not (args.out.parent.is_dir() and os.access(args.out.parent, os.W_OK)):
+        ap.error(f"--out {args.out}: its folder does not exist or cannot be written")
     rows = []
     for offset_mm, yaw_error_deg in GRID:
         rng = np.random.default_rng(0)
