@@ -517,7 +517,7 @@ def test_piper_emulator_physics_drives_the_twin_for_the_follower_plugin_with_its
         channel=group,
         port=port,
         cameras=cameras,
-        feedback_timeout_s=0.3,
+        feedback_timeout_s=1.0,
         motion_mode="position",
         speed_percent=100,
         calibration_dir=tmp_path,
@@ -570,7 +570,7 @@ def test_lerobot_record_with_the_scripted_teleoperator_records_a_successful_demo
             [
                 "--robot.type=piper_follower",
                 *emulator.args("robot"),
-                "--robot.feedback_timeout_s=0.3",
+                "--robot.feedback_timeout_s=1.0",
                 "--robot.motion_mode=position",
                 "--robot.speed_percent=100",
                 f"--robot.cameras={{front: {{view: front, {camera}}}, wrist: {{view: wrist, {camera}}}}}",
