@@ -113,6 +113,7 @@ OPTIONAL = {
     "rsft_demo_fraction": 0.0,
     "demo_detour": 0.0,
     "demo_regrasp": 0.0,
+    "demo_close_s": 0.8,
     "spo_trajectory_mean": False,
 }
 # The parts each setting changes directly (a setting not named here changes every part, from the demos on); a part
@@ -163,6 +164,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=float,
         default=0.0,
         help="m: half of the demos first close on nothing up to this far beside the object (piper_scripted regrasp_m)",
+    )
+    a(
+        "--demo-close-s",
+        type=float,
+        default=0.8,
+        help="s: how long every close of a demo stays closed before the arm moves on (piper_scripted close_s)",
     )
     a("--image-size", type=int, default=64, help="front and wrist cameras, square")
     a("--cameras", default="front,wrist", help="the twin's views the policy reads")
@@ -248,6 +255,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for flag in ("demo_detour", "demo_regrasp"):
         if not 0 <= getattr(args, flag) < float("inf"):
             p.error(f"--{flag.replace('_', '-')} must be a finite number >= 0 (m), got {getattr(args, flag):g}")
+    if not 0 < args.demo_close_s < float("inf"):
+        p.error(f"--demo-close-s must be a finite number > 0 (s), got {args.demo_close_s:g}")
     if not 0 <= args.rsft_demo_fraction < 1:
         p.error(f"--rsft-demo-fraction must be in [0, 1), got {args.rsft_demo_fraction:g}")
     if args.spo_clip is not None:
@@ -669,6 +678,7 @@ def record_demos(args: argparse.Namespace, task: str, paths: dict[str, Path], lo
             "--teleop.type=piper_scripted", "--teleop.cycle=false", f"--teleop.seed={args.demo_seed + have}",
             f"--teleop.detour_m={args.demo_detour:g}",
             f"--teleop.regrasp_m={args.demo_regrasp:g}",
+            f"--teleop.close_s={args.demo_close_s:g}",
             *teleop, f"--dataset.repo_id=local/twin_{task}", f"--dataset.root={root}",
             f"--dataset.single_task={TASKS[task]}", f"--dataset.num_episodes={args.demos - have}",
             f"--dataset.episode_time_s={args.demo_window_s[task]:g}", "--dataset.reset_time_s=0",

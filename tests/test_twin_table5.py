@@ -186,6 +186,12 @@ def test_a_fine_tune_setting_reuses_rsfts_collection_and_reruns_its_fine_tune(t5
             with pytest.raises(SystemExit):
                 t5.parse_args([f"--{flag}={bad}"])
             assert f"--{flag} must be a finite number >= 0" in capsys.readouterr().err
+    assert "demo_close_s" not in t5.config_of(t5.parse_args([]))
+    assert t5.config_of(t5.parse_args(["--demo-close-s=1.6"]))["demo_close_s"] == 1.6
+    for bad in ("nan", "inf", "0"):
+        with pytest.raises(SystemExit):
+            t5.parse_args([f"--demo-close-s={bad}"])
+        assert "--demo-close-s must be a finite number > 0" in capsys.readouterr().err
 
     old = {"config": t5.config_of(t5.parse_args(["--demos=3"])), "command": "x", "tasks": {}}
     old["tasks"]["press_button"] = {"parts": {p: part(0.5) for p in t5.PARTS}}

@@ -15,8 +15,8 @@ class PiperScriptedConfig(TeleoperatorConfig):
     task's waypoints at ``speed_m_s`` (each jittered by ``noise_m``, from ``seed``) and gives joint targets
     by inverse kinematics, which the follower executes through its usual safety checks. ``detour_m`` > 0: it
     first arrives beside the object, off by up to that much, and corrects; ``regrasp_m`` > 0: half of the
-    demonstrations first close the gripper on nothing, up to that far beside the object, then reopen and grasp
-    (``piper_twin.demo``).
+    demonstrations first close the gripper on nothing, up to that far beside the object, then reopen and grasp;
+    ``close_s``: how long every close stays closed before the arm moves on (``piper_twin.demo``).
 
     ``cycle=true``: once a demonstration is done it waits ``pause_s``, asks the twin to place the objects
     for the next seed (as a person puts the cube back) and demonstrates again; otherwise it holds.
@@ -30,6 +30,7 @@ class PiperScriptedConfig(TeleoperatorConfig):
     noise_m: float = 0.003
     detour_m: float = 0.0
     regrasp_m: float = 0.0
+    close_s: float = 0.8
     seed: int = 0
     cycle: bool = True
     pause_s: float = 1.0
@@ -37,9 +38,9 @@ class PiperScriptedConfig(TeleoperatorConfig):
     max_age_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("speed_m_s", "connect_timeout_s", "max_age_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"piper_scripted {name} must be positive, got {getattr(self, name)!r}")
+        for name in ("speed_m_s", "close_s", "connect_timeout_s", "max_age_s"):
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ValueError(f"piper_scripted {name} must be a finite number > 0, got {getattr(self, name)!r}")
         for name in ("noise_m", "detour_m", "regrasp_m", "pause_s"):
             if not 0 <= getattr(self, name) < float("inf"):
                 raise ValueError(f"piper_scripted {name} must be a finite number >= 0, got {getattr(self, name)!r}")

@@ -81,7 +81,13 @@ class PiperScripted(Teleoperator):
         scene = get_scene(snapshot.scene)
         model = compile_scene(scene)
         self._demo = ScriptedDemo(
-            scene, model, self.config.speed_m_s, self.config.noise_m, self.config.detour_m, self.config.regrasp_m
+            scene,
+            model,
+            self.config.speed_m_s,
+            self.config.noise_m,
+            self.config.detour_m,
+            self.config.regrasp_m,
+            self.config.close_s,
         )
         self._data = mujoco.MjData(model)
         self._receiver = receiver

@@ -14,6 +14,10 @@ With ``regrasp_m`` > 0, half of the demonstrations (drawn per demonstration) fir
 ``regrasp_m`` / 2 … ``regrasp_m`` beside the grasp point, across the direction the fingers close in, so that they
 pass beside the object; then they reopen, rise ``REGRASP_RISE_M`` and go on to the real grasp. A policy whose
 grasp misses has seen the gripper close to nothing and what follows it; without it every close holds the object.
+
+``close_s`` is how long every close (the real one and a missed one) stays closed before the arm moves on. The
+gripper takes ≈ 0.6 s to close on nothing; with a longer stay, a policy that decides every 0.8 s sees the settled
+opening (the cube's width, or nothing) before it must choose between lifting and reopening.
 """
 
 from __future__ import annotations
@@ -56,7 +60,9 @@ def _press_button(scene: PressButton, model: mujoco.MjModel, data: mujoco.MjData
     return [Waypoint(above, 0.0, approach=True), Waypoint(grasp, 0.0, 0.3), Waypoint(above, 0.0)], yaw
 
 
-def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
+def _cube_in_bowl(
+    scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData, close_s: float
+) -> tuple[list[Waypoint], float]:
     cube = data.xpos[model.body("cube").id].copy()
     bowl = data.mocap_pos[model.body("bowl").mocapid[0]]
     cube_yaw = 2 * math.atan2(data.xquat[model.body("cube").id][3], data.xquat[model.body("cube").id][0])
@@ -70,7 +76,7 @@ def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData)
     return [
         Waypoint(grasp + [0, 0, ABOVE_M - grasp[2]], OPEN_M, approach=True),
         Waypoint(grasp, OPEN_M),
-        Waypoint(grasp, 0.0, CLOSE_S),
+        Waypoint(grasp, 0.0, close_s),
         Waypoint(lift, 0.0),
         Waypoint(over_bowl, 0.0),
         Waypoint(drop, 0.0),
@@ -79,19 +85,24 @@ def _cube_in_bowl(scene: CubeInBowl, model: mujoco.MjModel, data: mujoco.MjData)
     ], yaw
 
 
-def plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[Waypoint], float]:
-    """The waypoints of ``scene``'s task in the state ``data`` (after ``mj_kinematics``), and the gripper's yaw."""
+def plan(
+    scene: Scene, model: mujoco.MjModel, data: mujoco.MjData, close_s: float = CLOSE_S
+) -> tuple[list[Waypoint], float]:
+    """The waypoints of ``scene``'s task in the state ``data`` (after ``mj_kinematics``), and the gripper's yaw;
+    a close stays closed ``close_s`` before the arm moves on."""
     if isinstance(scene, PressButton):
         return _press_button(scene, model, data)
     if isinstance(scene, CubeInBowl):
-        return _cube_in_bowl(scene, model, data)
+        return _cube_in_bowl(scene, model, data, close_s)
     raise ValueError(f"no scripted demonstration for scene {scene.name!r}")
 
 
-def missed_grasp(waypoints: list[Waypoint], yaw: float, rng: np.random.Generator, size_m: float) -> list[Waypoint]:
+def missed_grasp(
+    waypoints: list[Waypoint], yaw: float, rng: np.random.Generator, size_m: float, close_s: float = CLOSE_S
+) -> list[Waypoint]:
     """``waypoints`` with, before the descent to their first close, a close on nothing beside it (``size_m`` / 2 …
-    ``size_m`` off across the fingers' closing direction, either side), the reopen and the rise; unchanged when
-    no waypoint closes the gripper."""
+    ``size_m`` off across the fingers' closing direction, either side) that stays closed ``close_s``, the reopen
+    and the rise; unchanged when no waypoint closes the gripper."""
     closes = [k for k in range(1, len(waypoints)) if waypoints[k].gripper_m < waypoints[k - 1].gripper_m]
     if not closes:
         return waypoints
@@ -100,7 +111,7 @@ def missed_grasp(waypoints: list[Waypoint], yaw: float, rng: np.random.Generator
     beside = descent.position + across
     miss = [
         Waypoint(beside, descent.gripper_m),
-        Waypoint(beside, 0.0, CLOSE_S),
+        Waypoint(beside, 0.0, close_s),
         Waypoint(beside, descent.gripper_m, REOPEN_S),
         Waypoint(beside + [0.0, 0.0, REGRASP_RISE_M], descent.gripper_m),
     ]
@@ -124,9 +135,11 @@ class ScriptedDemo:
         noise_m: float = 0.003,
         detour_m: float = 0.0,
         regrasp_m: float = 0.0,
+        close_s: float = CLOSE_S,
     ) -> None:
         self.scene, self.model = scene, model
         self.speed_m_s, self.noise_m, self.detour_m, self.regrasp_m = speed_m_s, noise_m, detour_m, regrasp_m
+        self.close_s = close_s
         self.ik = ArmIK(model)
         self.waypoints: list[Waypoint] = []
         self.index = 0
@@ -141,7 +154,7 @@ class ScriptedDemo:
 
     def start(self, data: mujoco.MjData, joints_rad: Sequence[float], rng: np.random.Generator) -> None:
         """Plan from the objects in ``data`` (its kinematics computed), starting where the arm is."""
-        waypoints, self._yaw = plan(self.scene, self.model, data)
+        waypoints, self._yaw = plan(self.scene, self.model, data, self.close_s)
         jitter = rng.normal(0.0, self.noise_m, (len(waypoints), 3)) * [1, 1, 0.3]
         # A waypoint repeated (e.g. to close the gripper there) keeps its predecessor's jitter.
         for k in range(1, len(waypoints)):
@@ -153,7 +166,7 @@ class ScriptedDemo:
                 self.waypoints.append(Waypoint(w.position + j + detour(rng, self.detour_m), w.gripper_m))
             self.waypoints.append(Waypoint(w.position + j, w.gripper_m, w.dwell_s, w.approach))
         if self.regrasp_m > 0 and rng.random() < 0.5:
-            self.waypoints = missed_grasp(self.waypoints, self._yaw, rng, self.regrasp_m)
+            self.waypoints = missed_grasp(self.waypoints, self._yaw, rng, self.regrasp_m, self.close_s)
         self.index = 0
         self._joints = np.asarray(joints_rad, dtype=float)
         self._point = self.ik.grasp_pose(self._joints)[0]

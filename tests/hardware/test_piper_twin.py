@@ -286,6 +286,14 @@ def test_a_demonstration_with_a_missed_grasp_closes_beside_the_cube_reopens_and_
         assert across[2] == 0 and 0.03 <= np.linalg.norm(across) <= 0.06
         assert abs(across @ [-math.sin(demo._yaw), math.cos(demo._yaw), 0.0]) < 1e-9  # not along the closing fingers
         np.testing.assert_allclose(miss[3].position - miss[0].position, [0, 0, 0.04])
+        # ``close_s`` lengthens both closes (the miss and the grasp) and nothing else.
+        longer = ScriptedDemo(plant.scene, plant.model, regrasp_m=0.06, close_s=1.6)
+        longer.start(plant.data, rig.arm.joints_rad, np.random.default_rng(2))
+        closes = [k for k, w in enumerate(demo.waypoints) if w.dwell_s == 0.8]
+        assert closes == [2, 6] and [demo.waypoints[k].gripper_m for k in closes] == [0.0, 0.0]
+        for k, (w, w_long) in enumerate(zip(demo.waypoints, longer.waypoints, strict=True)):
+            np.testing.assert_array_equal(w.position, w_long.position)
+            assert (w.gripper_m, 1.6 if k in closes else w.dwell_s) == (w_long.gripper_m, w_long.dwell_s)
         before, closed_on_nothing = plant.data.xpos[cube].copy(), None
         start = rig.now()
         while not demo.done and rig.now() - start < 20.0:
