@@ -41,8 +41,10 @@ def trial(seed: int, offset_mm: float, yaw_error_deg: float, rng: np.random.Gene
     offset = np.array([math.cos(angle), math.sin(angle), 0.0]) * offset_mm / 1000
     yaw_error = rng.choice([-1.0, 1.0]) * math.radians(yaw_error_deg)
 
-    def off_plan(scene: Scene, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[list[demo.Waypoint], float]:
-        waypoints, yaw = PLAN(scene, model, data)
+    def off_plan(
+        scene: Scene, model: mujoco.MjModel, data: mujoco.MjData, close_s: float = demo.CLOSE_S
+    ) -> tuple[list[demo.Waypoint], float]:
+        waypoints, yaw = PLAN(scene, model, data, close_s)
         moved = [
             demo.Waypoint(w.position + offset, w.gripper_m, w.dwell_s, w.approach) for w in waypoints[:GRASP_WAYPOINTS]
         ]
