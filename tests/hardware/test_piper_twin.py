@@ -269,6 +269,13 @@ def test_a_scripted_demonstration_does_the_task_through_the_real_driver(scene, s
         assert rig.now() - start < 12.0  # press ~4 s, cube ~9 s at 0.12 m/s
 
 
+@pytest.mark.parametrize("field", ["close_s", "speed_m_s"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 0.0])
+def test_the_scripted_teleoperator_refuses_a_duration_or_speed_that_is_not_finite_and_positive(field, bad):
+    with pytest.raises(ValueError, match=f"piper_scripted {field} must be a finite number > 0, got {bad!r}"):
+        PiperScriptedConfig(**{field: bad})
+
+
 def test_a_demonstration_with_a_missed_grasp_closes_beside_the_cube_reopens_and_still_succeeds():
     """``regrasp_m``: the first close lands 3-6 cm beside the grasp point, across the fingers' closing direction, the
     fingers close on nothing (the cube does not move), reopen, rise, and the grasp that follows succeeds."""
