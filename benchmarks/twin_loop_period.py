@@ -5,17 +5,21 @@ configs/metaworld_vision.yaml: the four-layer conv encoder, its keypoints and em
 its ``demos.image_size``) reading the twin's camera(s) plus the PiPER's 7-D state, 7-D action, saved with its
 processors. Starts ``piper-emulator --physics --scene=<scene>`` on private udp_multicast channels (CAN and the
 twin's world state), runs ``lerobot-rollout --strategy.type=base --robot.cameras=<piper_twin views>`` against it once
-per variant (synchronous decode, and the background decode started ``--lead`` ticks before the queue runs dry),
-and measures the loop period from the kernel receive times of the joint commands on the bus, as
-benchmarks/rollout_loop_period.py does for the state policy on the kinematic firmware. A period over 1.1 control
-periods (36.7 ms at 30 Hz) is a missed tick.
+per variant (synchronous decode; the background decode started ``--lead`` ticks before the queue runs dry, after
+the policy's default start delay; ``nodelay``: the same without the delay), and measures the loop period from the
+kernel receive times of the joint commands on the bus, as benchmarks/rollout_loop_period.py does for the state
+policy on the kinematic firmware. A period over 1.1 control periods (36.7 ms at 30 Hz) is a missed tick.
 
 ``lerobot-rollout`` runs as itself (LeRobot's ``main``) behind a few lines that time each camera read of the loop
 (``read_latest``: the twin's camera renders in the rollout process on its own capture thread, as a real camera
-captures) and each ``select_action`` (two clock reads per call), written to a file at exit. Run:
+captures), each ``get_observation``, ``select_action`` and ``send_action`` and how late each of the loop's sleeps
+wakes (two clock reads per call), written to a file at exit. The late periods are also counted by their tick's place
+in its skill (0: the tick that refills the queue; n_action_steps - 1 - lead: the tick that starts the background
+decode). Run:
     OMP_NUM_THREADS=1 ./run.sh python benchmarks/twin_loop_period.py [--duration 60] [--lead 3] [--skip 5]
         [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
-        [--variants sync,background] [--nice N]   (N < 0: the control loop above the emulator, as root)
+        [--variants sync,background,nodelay] [--nice N]   (N < 0: the control loop above the emulator, as root)
+        [--raw FILE]   (the command times and every timed call, as JSON)
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ import numpy as np
 import yaml
 from rollout_loop_period import report, save_untrained_piper_policy
 
+from lerobot_cso.policy import CSOConfig
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "hardware"))
 from piper_processes import BIN, ChannelRecorder, cli_env, explain, start_emulator  # noqa: E402
@@ -46,7 +52,9 @@ TIMINGS_ENV = "TWIN_LOOP_TIMINGS"
 ROLLOUT = f"""
 import atexit, json, os, sys, time
 from lerobot_robot_piper.piper_twin_camera import PiperTwinCamera
+from lerobot_robot_piper.piper_follower import PiperFollower
 from lerobot_cso.policy import CSOPolicy
+import lerobot.rollout.strategies.base as base
 from lerobot.scripts.lerobot_rollout import main
 timings = {{}}
 def timed(key_of, original):
@@ -59,6 +67,13 @@ def timed(key_of, original):
     return wrapper
 PiperTwinCamera.read_latest = timed(lambda cam: "camera " + cam.config.view, PiperTwinCamera.read_latest)
 CSOPolicy.select_action = timed(lambda policy: "select_action", CSOPolicy.select_action)
+PiperFollower.get_observation = timed(lambda robot: "get_observation", PiperFollower.get_observation)
+PiperFollower.send_action = timed(lambda robot: "send_action", PiperFollower.send_action)
+def sleep(seconds, _sleep=base.precise_sleep):
+    wall, start = time.time(), time.perf_counter()
+    _sleep(seconds)
+    timings.setdefault("sleep overshoot", []).append((wall, (time.perf_counter() - start - seconds) * 1e3))
+base.precise_sleep = sleep
 atexit.register(lambda: open(os.environ["{TIMINGS_ENV}"], "w").write(json.dumps(timings)))
 sys.argv[0] = "lerobot-rollout"
 sys.exit(main())
@@ -73,9 +88,22 @@ def vision_settings(config: Path) -> tuple[dict, int]:
     return policy, int(cfg["demos"]["image_size"])
 
 
-def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int) -> tuple[np.ndarray, dict]:
-    """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, and the
-    timed calls after the same instant (name -> ms)."""
+def late_by_place(times: np.ndarray, start: float, select_calls: list, steps: int, limit_ms: float) -> list[int]:
+    """Late periods (over ``limit_ms``) after ``start`` counted by their tick's place in its skill: the index of
+    the ``select_action`` call before the command, modulo ``steps`` (call 0 refills the queue)."""
+    calls = np.array([wall for wall, _ in select_calls])
+    counts = [0] * steps
+    for before, command in zip(times[:-1], times[1:], strict=True):
+        if command >= start and (command - before) * 1000 > limit_ms:
+            counts[int(np.searchsorted(calls, command, side="right") - 1) % steps] += 1
+    return counts
+
+
+def loop_run(
+    checkpoint: Path, home: Path, args: argparse.Namespace, side: int, raw: Path | None
+) -> tuple[np.ndarray, dict, list[int]]:
+    """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, the timed calls
+    after the same instant (name -> ms), and the late periods by their tick's place in its skill."""
     group, port = unique_udp_channel()
     state_group, state_port = unique_udp_channel()
     physics = ["--physics", f"--scene={args.scene}", "--scene-seed=3"]
@@ -115,7 +143,11 @@ def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int) 
     start = times[0] + args.skip  # the first commands: connection, the first decode
     timed = json.loads(timings.read_text()) if timings.exists() else {}
     calls = {name: np.array([ms for wall, ms in calls if wall >= start]) for name, calls in timed.items()}
-    return np.diff(times[times >= start]) * 1000, calls
+    if raw is not None:
+        raw.write_text(json.dumps({"command_receive_s": times.tolist(), "calls": timed}))
+    steps = CSOConfig().n_action_steps
+    late = late_by_place(times, start, timed.get("select_action", []), steps, 1.1 * 1000 / args.fps)
+    return np.diff(times[times >= start]) * 1000, calls, late
 
 
 def main() -> None:
@@ -129,7 +161,8 @@ def main() -> None:
     parser.add_argument("--scene", default="press_button", choices=("press_button", "cube_in_bowl"))
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "metaworld_vision.yaml")
     parser.add_argument("--nice", type=int, default=0, help="the rollout's niceness (negative: above the emulator's)")
-    parser.add_argument("--variants", default="sync,background", help="sync, background or both")
+    parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background, nodelay")
+    parser.add_argument("--raw", type=Path, help="write each variant's command times and timed calls to FILE.<variant>")
     args = parser.parse_args()
     settings, side = vision_settings(args.config)
     limit_ms = 1.1 * 1000 / args.fps
@@ -141,16 +174,22 @@ def main() -> None:
         print(f"# load average before: {f.read().strip()}")
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        background = f"background decode, lead {args.lead}"
-        variants = {"sync": ("synchronous decode", 0), "background": (background, args.lead)}
-        for name, lead in (variants[v] for v in args.variants.split(",")):
+        delay_ms = 1000 * CSOConfig().async_decode_delay_s
+        variants = {  # the name, the lead, the decode's start delay
+            "sync": ("synchronous decode", 0, {}),
+            "background": (f"background decode, lead {args.lead}, start delay {delay_ms:g} ms", args.lead, {}),
+            "nodelay": (f"background decode, lead {args.lead}, no start delay", args.lead, {"async_decode_delay_s": 0}),
+        }
+        for variant in args.variants.split(","):
+            name, lead, extra = variants[variant]
             begin = time.monotonic()
-            path = home / f"policy_lead{lead}"
             checkpoint = save_untrained_piper_policy(
-                path, lead, args.weights, settings, tuple(args.cameras), side, TASK
+                home / f"policy_{variant}", lead, args.weights, settings | extra, tuple(args.cameras), side, TASK
             )
-            periods, calls = loop_run(checkpoint, home, args, side)
+            raw = None if args.raw is None else args.raw.with_name(f"{args.raw.name}.{variant}")
+            periods, calls, late = loop_run(checkpoint, home, args, side, raw)
             report(f"{name} ({args.weights})", periods, limit_ms)
+            print(f"late periods by the tick's place in its skill (0: refill): {late}")
             for call, ms in sorted(calls.items()):
                 if len(ms):
                     print(

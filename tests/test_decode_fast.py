@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 
 import pytest
 import torch
@@ -95,6 +96,9 @@ def test_async_decode_lead_must_leave_a_queued_action():
         full_size_policy(async_decode_lead=8)
     with pytest.raises(ValueError, match="inference_weights"):
         full_size_policy(inference_weights="fp8")
+    for delay in (-0.001, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="async_decode_delay_s"):
+            full_size_policy(async_decode_delay_s=delay)
 
 
 def test_reset_waits_for_and_drops_a_pending_decode():
@@ -118,6 +122,15 @@ def test_the_background_decode_runs_on_one_kept_thread_below_the_caller():
     second = decode_in_background(_thread_and_niceness, {}).result()
     assert first == second and first[0].startswith("cso-decode")
     assert first[1] == min(os.nice(0) + DECODE_NICENESS, 19) and DECODE_NICENESS > 0
+
+
+def test_the_background_decode_starts_its_delay_after_the_call_and_the_caller_runs_on():
+    """Session 35: the decode starts ``delay_s`` after the tick that handed it over, which meanwhile goes on."""
+    handed = time.perf_counter()
+    pending = decode_in_background(lambda _batch: time.perf_counter(), {}, delay_s=0.05)
+    returned = time.perf_counter()
+    started = pending.result()
+    assert returned - handed < 0.05 <= started - handed
 
 
 def test_a_background_decode_error_reaches_the_caller():

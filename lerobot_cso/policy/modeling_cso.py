@@ -225,8 +225,9 @@ class CSOPolicy(PreTrainedPolicy):
         """Decode a skill, execute its first ``n_action_steps`` actions, then replan.
 
         With ``async_decode_lead = L > 0`` the next skill is decoded in a background thread from the
-        observation of the tick on which L actions remain queued, so the control loop keeps ticking while it
-        runs; the queue is refilled from it when it runs dry (waiting only if the decode is not done yet).
+        observation of the tick on which L actions remain queued, starting ``async_decode_delay_s`` later, so the
+        control loop keeps ticking while it runs; the queue is refilled from it when it runs dry (waiting only if
+        the decode is not done yet).
         """
         if not self._action_queue:
             pending, self._next_chunk = self._next_chunk, None
@@ -235,7 +236,7 @@ class CSOPolicy(PreTrainedPolicy):
         action = self._action_queue.popleft()
         lead = self.config.async_decode_lead
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
-            self._next_chunk = decode_in_background(self._executed_chunk, batch)
+            self._next_chunk = decode_in_background(self._executed_chunk, batch, self.config.async_decode_delay_s)
         return action
 
     @property
