@@ -16,12 +16,14 @@ evaluations' rate on the scenes it won and on those it lost.
 ``failures`` sorts an evaluation's failed trials by what its gripper did (from the journal: the commanded opening
 closing, the measured opening 1 s later, under 5 mm being a close on nothing; where the grasp point was, by the
 twin's forward kinematics, when the gripper next opened after holding something, against the scene's bowl) and files
-the counts under the evaluation's ``failure_modes``.
+the counts under the evaluation's ``failure_modes``. ``sort`` prints the same counts for any cube evaluation, e.g.
+the held-out ones of ``twin_table5.py`` (``--scene-seed=100000``), and files nothing.
 
     python benchmarks/twin_dev_scenes.py add --name=il_n4 --eval=outputs/s33/eval_dev_il_nas4 \\
         --checkpoint="session 30's IL with --policy.n_action_steps=4" --command="the eval_command with ..."
     python benchmarks/twin_dev_scenes.py agreement --names=il,rsft,cso_6,cso_12,cso_trajectory_mean,rsft_60
     python benchmarks/twin_dev_scenes.py failures --name=il_regrasp --eval=outputs/s33/eval_dev_il_regrasp
+    python benchmarks/twin_dev_scenes.py sort --eval=outputs/twin_regrasp/cube_in_bowl/eval_il_100 --scene-seed=100000
 """
 
 import argparse
@@ -120,30 +122,45 @@ def failure_mode(actions: np.ndarray, states: np.ndarray, bowl_xy: np.ndarray, g
     return f"held the cube, opened away from the bowl {'below' if point[2] < 0.06 else 'above'} 6 cm"
 
 
-def failures(results: dict[str, Any], args: argparse.Namespace) -> str:
-    """File the failure modes of an evaluation already added (its journal at ``--eval``); the report."""
+def failure_modes(eval_dir: Path, scene_seed: int) -> dict[str, int]:
+    """The failed trials of an evaluation (its journal) sorted by ``failure_mode``; trial i ran scene
+    ``scene_seed + i``."""
     from piper_twin.ik import ArmIK
     from piper_twin.plant import TwinPlant
 
-    entry = results["checkpoints"][args.name]
     plant = TwinPlant("cube_in_bowl", 0)
     ik = ArmIK(plant.model)
     modes: dict[str, int] = {}
-    for path in sorted(args.eval.glob("robot_journal/episodes/*/*.npz")):
+    for path in sorted(eval_dir.glob("robot_journal/episodes/*/*.npz")):
         with np.load(path) as episode:
             if bool(episode["success"]):
                 continue
             actions, states = episode["actions"], episode["states"]
-        plant.reset(SCENE_SEED + int(path.stem.split("_")[0]))
+        plant.reset(scene_seed + int(path.stem.split("_")[0]))
         bowl = plant.data.mocap_pos[plant.model.body("bowl").mocapid[0]][:2].copy()
         mode = failure_mode(actions, states, bowl, lambda q: ik.grasp_pose(q)[0])
         modes[mode] = modes.get(mode, 0) + 1
+    return dict(sorted(modes.items()))
+
+
+def failures(results: dict[str, Any], args: argparse.Namespace) -> str:
+    """File the failure modes of an evaluation already added (its journal at ``--eval``); the report."""
+    entry = results["checkpoints"][args.name]
+    modes = failure_modes(args.eval, SCENE_SEED)
     if sum(modes.values()) != entry["trials"] - entry["successes"]:
         raise ValueError(
             f"{args.eval} does not hold the {entry['trials'] - entry['successes']} failures of {args.name}"
         )
-    entry["failure_modes"] = dict(sorted(modes.items()))
-    return f"{args.name}: " + ", ".join(f"{k} {v}" for k, v in entry["failure_modes"].items())
+    entry["failure_modes"] = modes
+    return f"{args.name}: " + ", ".join(f"{k} {v}" for k, v in modes.items())
+
+
+def sort(results: dict[str, Any], args: argparse.Namespace) -> str:
+    """Any evaluation's failure modes (e.g. on the held-out scenes, ``--scene-seed=100000``), printed, not filed."""
+    modes = failure_modes(args.eval, args.scene_seed)
+    if not modes and not any(args.eval.glob("robot_journal/episodes/*/*.npz")):
+        raise ValueError(f"{args.eval} holds no journal of finished trials")
+    return f"{args.eval}: {sum(modes.values())} failed: " + ", ".join(f"{k} {v}" for k, v in modes.items())
 
 
 def main() -> int:
@@ -161,11 +178,16 @@ def main() -> int:
     f = sub.add_parser("failures", help="sort an evaluation's failed trials by what the gripper did")
     f.add_argument("--name", required=True, help="an evaluation already added")
     f.add_argument("--eval", type=Path, required=True, help="its lerobot-cso eval --output_dir")
+    o = sub.add_parser("sort", help="print any evaluation's failure modes (files nothing)")
+    o.add_argument("--eval", type=Path, required=True, help="a lerobot-cso eval --output_dir on cube_in_bowl")
+    o.add_argument("--scene-seed", type=int, required=True, help="its --operator.scene_seed (held-out: 100000)")
     args = ap.parse_args()
     try:
         results = json.loads(args.results.read_text())
-        report = {"add": add, "agreement": agreement, "failures": failures}[args.command_name](results, args)
-        write_atomic(args.results, (json.dumps(results, indent=1, ensure_ascii=False) + "\n").encode())
+        commands = {"add": add, "agreement": agreement, "failures": failures, "sort": sort}
+        report = commands[args.command_name](results, args)
+        if args.command_name != "sort":
+            write_atomic(args.results, (json.dumps(results, indent=1, ensure_ascii=False) + "\n").encode())
     except (OSError, KeyError, ValueError) as e:
         print(f"twin_dev_scenes: {type(e).__name__}: {e}", file=sys.stderr)
         return 2

@@ -97,3 +97,39 @@ def test_a_failed_trial_is_sorted_by_what_its_gripper_did(monkeypatch):
     assert module.failure_mode(*held, bowl, at["bowl"]) == "held the cube, opened within 10 cm of the bowl"
     to_the_end = trial(open_ + shut, [0.06] * 5 + [0.03] * 15)
     assert module.failure_mode(*to_the_end, bowl, at["table"]) == "held the cube to the end"
+
+
+def test_sort_places_each_trial_in_its_own_scene_and_files_nothing(tmp_path):
+    """``sort --scene-seed``: a cube held and let go above the bowl of held-out scene 100000 + 1 is sorted as opened
+    by the bowl only against that scene (its bowl lies > 10 cm from the development scene 300001's)."""
+    from piper_twin.ik import ArmIK, down_rotation
+    from piper_twin.plant import TwinPlant
+
+    plant = TwinPlant("cube_in_bowl", 0)
+    ik = ArmIK(plant.model)
+
+    def bowl(seed: int) -> np.ndarray:
+        plant.reset(seed)
+        return plant.data.mocap_pos[plant.model.body("bowl").mocapid[0]].copy()
+
+    held_out, development = bowl(100001), bowl(300001)
+    assert np.linalg.norm(held_out[:2] - development[:2]) > 0.1
+    above = held_out + [0.0, 0.0, 0.15]
+    joints, error = ik.solve(np.zeros(6), above, down_rotation(above, 0.0))
+    assert error < 1e-3
+    actions, states = np.zeros((30, 7)), np.zeros((30, 7))
+    actions[:, :6] = states[:, :6] = joints
+    actions[:, 6] = [0.06] * 5 + [0.0] * 20 + [0.06] * 5  # close, hold, reopen above the bowl
+    states[:, 6] = [0.06] * 5 + [0.03] * 25  # the fingers stopped on the cube
+    episodes = tmp_path / "eval" / "robot_journal" / "episodes" / "put_the_cube_in_the_bowl"
+    episodes.mkdir(parents=True)
+    np.savez(episodes / "0000000_001.npz", success=np.array(True), actions=actions, states=states)
+    np.savez(episodes / "0000001_001.npz", success=np.array(False), actions=actions, states=states)
+    results = tmp_path / "dev.json"
+    results.write_text("{}")
+    modes = {100000: "held the cube, opened within 10 cm of the bowl", 300000: "held the cube, opened away"}
+    for seed, mode in modes.items():
+        out = run(results, "sort", f"--eval={tmp_path / 'eval'}", f"--scene-seed={seed}")
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.startswith(f"{tmp_path / 'eval'}: 1 failed: {mode}"), out.stdout
+    assert results.read_text() == "{}"
