@@ -32,7 +32,6 @@ REST_RAD = (0.0, 1.0, -1.0, 0.0, 1.0, 0.0)  # the Table 5 runs' initial pose
 DT_S, EPISODE_S = 0.01, 20.0
 GRASP_WAYPOINTS = 3  # above the cube, down to it, the close (demo._cube_in_bowl's order)
 GRID = ((0, 0), (5, 0), (10, 0), (15, 0), (20, 0), (25, 0), (0, 15), (0, 30), (0, 45))  # (offset mm, yaw error deg)
-PLAN = demo.plan
 
 
 def trial(seed: int, offset_mm: float, yaw_error_deg: float, rng: np.random.Generator) -> bool:
@@ -44,20 +43,16 @@ def trial(seed: int, offset_mm: float, yaw_error_deg: float, rng: np.random.Gene
     def off_plan(
         scene: Scene, model: mujoco.MjModel, data: mujoco.MjData, close_s: float = demo.CLOSE_S
     ) -> tuple[list[demo.Waypoint], float]:
-        waypoints, yaw = PLAN(scene, model, data, close_s)
+        waypoints, yaw = demo.plan(scene, model, data, close_s)
         moved = [
             demo.Waypoint(w.position + offset, w.gripper_m, w.dwell_s, w.approach) for w in waypoints[:GRASP_WAYPOINTS]
         ]
         return moved + waypoints[GRASP_WAYPOINTS:], yaw + yaw_error
 
     plant = TwinPlant("cube_in_bowl", seed, REST_RAD, 0.0)
-    script = demo.ScriptedDemo(plant.scene, plant.model, noise_m=0.0)
+    script = demo.ScriptedDemo(plant.scene, plant.model, noise_m=0.0, planner=off_plan)
     mujoco.mj_kinematics(plant.model, plant.data)
-    demo.plan = off_plan
-    try:
-        script.start(plant.data, plant.state().joints_rad, rng)
-    finally:
-        demo.plan = PLAN
+    script.start(plant.data, plant.state().joints_rad, rng)
     for _ in range(int(EPISODE_S / DT_S)):
         targets, gripper_m = script.step(DT_S, plant.state().joints_rad)
         plant.step(DT_S, PlantCommand(tuple(targets), (0.0,) * 6, ("servo",) * 6, gripper_m, "servo"))

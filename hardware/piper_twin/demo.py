@@ -23,7 +23,7 @@ opening (the cube's width, or nothing) before it must choose between lifting and
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import mujoco
@@ -97,6 +97,9 @@ def plan(
     raise ValueError(f"no scripted demonstration for scene {scene.name!r}")
 
 
+Planner = Callable[[Scene, mujoco.MjModel, mujoco.MjData, float], tuple[list[Waypoint], float]]
+
+
 def missed_grasp(
     waypoints: list[Waypoint], yaw: float, rng: np.random.Generator, size_m: float, close_s: float = CLOSE_S
 ) -> list[Waypoint]:
@@ -136,10 +139,12 @@ class ScriptedDemo:
         detour_m: float = 0.0,
         regrasp_m: float = 0.0,
         close_s: float = CLOSE_S,
+        planner: Planner = plan,
     ) -> None:
+        """``planner`` gives the waypoints and the yaw (``plan``, or a test rig's variant of it)."""
         self.scene, self.model = scene, model
         self.speed_m_s, self.noise_m, self.detour_m, self.regrasp_m = speed_m_s, noise_m, detour_m, regrasp_m
-        self.close_s = close_s
+        self.close_s, self.planner = close_s, planner
         self.ik = ArmIK(model)
         self.waypoints: list[Waypoint] = []
         self.index = 0
@@ -152,9 +157,14 @@ class ScriptedDemo:
     def done(self) -> bool:
         return self.index >= len(self.waypoints)
 
+    @property
+    def yaw(self) -> float:
+        """The gripper's yaw about the vertical in the plan ``start`` made (rad)."""
+        return self._yaw
+
     def start(self, data: mujoco.MjData, joints_rad: Sequence[float], rng: np.random.Generator) -> None:
         """Plan from the objects in ``data`` (its kinematics computed), starting where the arm is."""
-        waypoints, self._yaw = plan(self.scene, self.model, data, self.close_s)
+        waypoints, self._yaw = self.planner(self.scene, self.model, data, self.close_s)
         jitter = rng.normal(0.0, self.noise_m, (len(waypoints), 3)) * [1, 1, 0.3]
         # A waypoint repeated (e.g. to close the gripper there) keeps its predecessor's jitter.
         for k in range(1, len(waypoints)):

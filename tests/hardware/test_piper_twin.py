@@ -291,7 +291,7 @@ def test_a_demonstration_with_a_missed_grasp_closes_beside_the_cube_reopens_and_
         assert [(w.gripper_m, w.dwell_s) for w in miss] == [(0.06, 0.0), (0.0, 0.8), (0.06, 0.3), (0.06, 0.0)]
         across = miss[0].position - descent.position
         assert across[2] == 0 and 0.03 <= np.linalg.norm(across) <= 0.06
-        assert abs(across @ [-math.sin(demo._yaw), math.cos(demo._yaw), 0.0]) < 1e-9  # not along the closing fingers
+        assert abs(across @ [-math.sin(demo.yaw), math.cos(demo.yaw), 0.0]) < 1e-9  # not along the closing fingers
         np.testing.assert_allclose(miss[3].position - miss[0].position, [0, 0, 0.04])
         # ``close_s`` lengthens both closes (the miss and the grasp) and nothing else.
         longer = ScriptedDemo(plant.scene, plant.model, regrasp_m=0.06, close_s=1.6)
