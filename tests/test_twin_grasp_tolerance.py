@@ -18,4 +18,3 @@ def test_the_grasp_as_planned_succeeds_and_one_moved_25_mm_fails():
     spec.loader.exec_module(module)
     assert module.trial(300000, 0, 0, np.random.default_rng(0))
     assert not module.trial(300000, 25, 0, np.random.default_rng(0))
-    assert module.demo.plan is module.PLAN  # the off plan is put back

@@ -17,9 +17,9 @@ from torch import Tensor
 # loop (docs/benchmarks.md, session 26) the late ticks were mostly the ticks that started a decode: the decode
 # took the CPU from the loop's own thread before it had sent its action. Below the loop, p99 met 36.7 ms in 6 of 10
 # runs (3 of ~25 at +0) and 4-29 ticks of ~1 640 were late (13-326 at +0); a decode still finishes within its lead.
-# On a 2-core AMD VM (session 35) 85 % of the late ticks were still decode-start ticks, however low the decode's
+# On a 2-core AMD VM (session 35) 82-96 % of the late ticks were still decode-start ticks, however low the decode's
 # priority: it took the GIL, not the CPU, from the loop between that tick's select_action and its send. Hence the
-# start delay (the policy's ``async_decode_delay_s``): 50-86 late ticks per 60 s run without it, 4-20 with 8 ms.
+# start delay (the policy's ``async_decode_delay_s``): 50-87 late ticks per 60 s run without it, 4-20 with 8 ms.
 DECODE_NICENESS = 5
 _decoder: tuple[int, ThreadPoolExecutor] | None = None  # the process that made it, and its one decode thread
 
