@@ -145,7 +145,7 @@ def loop_run(
     calls = {name: np.array([ms for wall, ms in calls if wall >= start]) for name, calls in timed.items()}
     if raw is not None:
         raw.write_text(json.dumps({"command_receive_s": times.tolist(), "calls": timed}))
-    steps = CSOConfig().n_action_steps
+    steps = json.loads((checkpoint / "config.json").read_text())["n_action_steps"]
     late = late_by_place(times, start, timed.get("select_action", []), steps, 1.1 * 1000 / args.fps)
     return np.diff(times[times >= start]) * 1000, calls, late
 
