@@ -157,9 +157,9 @@ def failures(results: dict[str, Any], args: argparse.Namespace) -> str:
 
 def sort(results: dict[str, Any], args: argparse.Namespace) -> str:
     """Any evaluation's failure modes (e.g. on the held-out scenes, ``--scene-seed=100000``), printed, not filed."""
-    modes = failure_modes(args.eval, args.scene_seed)
-    if not modes and not any(args.eval.glob("robot_journal/episodes/*/*.npz")):
+    if not any(args.eval.glob("robot_journal/episodes/*/*.npz")):
         raise ValueError(f"{args.eval} holds no journal of finished trials")
+    modes = failure_modes(args.eval, args.scene_seed)
     return f"{args.eval}: {sum(modes.values())} failed: " + ", ".join(f"{k} {v}" for k, v in modes.items())
 
 

@@ -164,6 +164,11 @@ def main() -> None:
     parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background, nodelay")
     parser.add_argument("--raw", type=Path, help="write each variant's command times and timed calls to FILE.<variant>")
     args = parser.parse_args()
+    unknown = set(args.variants.split(",")) - {"sync", "background", "nodelay"}
+    if unknown:
+        parser.error(f"--variants: unknown {', '.join(sorted(unknown))} (sync, background, nodelay)")
+    if args.raw is not None and not os.access(args.raw.parent, os.W_OK):
+        parser.error(f"--raw: cannot write in {args.raw.parent}")
     settings, side = vision_settings(args.config)
     limit_ms = 1.1 * 1000 / args.fps
     print(f"# command: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '')} python {shlex.join(sys.argv)}")
