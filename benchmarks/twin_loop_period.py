@@ -5,8 +5,8 @@ configs/metaworld_vision.yaml: the four-layer conv encoder, its keypoints and em
 its ``demos.image_size``) reading the twin's camera(s) plus the PiPER's 7-D state, 7-D action, saved with its
 processors. Starts ``piper-emulator --physics --scene=<scene>`` on private udp_multicast channels (CAN and the
 twin's world state), runs ``lerobot-rollout --strategy.type=base --robot.cameras=<piper_twin views>`` against it once
-per variant (synchronous decode; the background decode started ``--lead`` ticks before the queue runs dry, after
-the policy's default start delay; ``nodelay``: the same without the delay), and measures the loop period from the
+per variant (synchronous decode; the background decode, in its own process, started ``--lead`` ticks before the
+queue runs dry), and measures the loop period from the
 kernel receive times of the joint commands on the bus, as benchmarks/rollout_loop_period.py does for the state
 policy on the kinematic firmware. A period over 1.1 control periods (36.7 ms at 30 Hz) is a missed tick.
 
@@ -18,7 +18,8 @@ in its skill (0: the tick that refills the queue; n_action_steps - 1 - lead: the
 decode). Run:
     OMP_NUM_THREADS=1 ./run.sh python benchmarks/twin_loop_period.py [--duration 60] [--lead 3] [--skip 5]
         [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
-        [--variants sync,background,nodelay] [--nice N]   (N < 0: the control loop above the emulator, as root)
+        [--variants sync,background] [--nice N]   (N < 0: the control loop above the emulator, as root)
+        [--fifo P]   (the rollout under SCHED_FIFO priority P, as root)
         [--raw FILE]   (the command times and every timed call, as JSON)
 """
 
@@ -38,8 +39,6 @@ import numpy as np
 import yaml
 from rollout_loop_period import report, save_untrained_piper_policy
 
-from lerobot_cso.policy import CSOConfig
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "hardware"))
 from piper_processes import BIN, ChannelRecorder, cli_env, explain, start_emulator  # noqa: E402
@@ -48,6 +47,7 @@ from piper_rig import unique_udp_channel  # noqa: E402
 TASK = "press the button"
 CAMERA = "{type: piper_twin, view: %s, width: %d, height: %d, group: %s, port: %d, max_age_s: 1.0}"
 TIMINGS_ENV = "TWIN_LOOP_TIMINGS"
+VARIANTS = ("sync", "background")
 # lerobot-rollout's console script, with each camera read and each select_action timed: (wall start s, ms).
 ROLLOUT = f"""
 import atexit, json, os, sys, time
@@ -125,9 +125,12 @@ def loop_run(
         "--device=cpu",
         "--return_to_initial_position=false",
     ]
+    command = ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout]
+    if args.fifo:  # real-time scheduling (as root): every thread of the rollout above every ordinary process
+        command = ["chrt", "--fifo", str(args.fifo), *command]
     try:
         out = subprocess.run(
-            ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout],
+            command,
             capture_output=True,
             text=True,
             timeout=args.duration + 240,
@@ -161,12 +164,13 @@ def main() -> None:
     parser.add_argument("--scene", default="press_button", choices=("press_button", "cube_in_bowl"))
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "metaworld_vision.yaml")
     parser.add_argument("--nice", type=int, default=0, help="the rollout's niceness (negative: above the emulator's)")
-    parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background, nodelay")
+    parser.add_argument("--fifo", type=int, default=0, help="run the rollout under SCHED_FIFO at this priority")
+    parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background")
     parser.add_argument("--raw", type=Path, help="write each variant's command times and timed calls to FILE.<variant>")
     args = parser.parse_args()
-    unknown = set(args.variants.split(",")) - {"sync", "background", "nodelay"}
+    unknown = set(args.variants.split(",")) - set(VARIANTS)
     if unknown:
-        parser.error(f"--variants: unknown {', '.join(sorted(unknown))} (sync, background, nodelay)")
+        parser.error(f"--variants: unknown {', '.join(sorted(unknown))} ({', '.join(VARIANTS)})")
     if args.raw is not None and not os.access(args.raw.parent, os.W_OK):
         parser.error(f"--raw: cannot write in {args.raw.parent}")
     settings, side = vision_settings(args.config)
@@ -174,22 +178,17 @@ def main() -> None:
     print(f"# command: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '')} python {shlex.join(sys.argv)}")
     views = ",".join(args.cameras)
     print(f"# policy: {args.config.name} il.policy, cameras {views} at {side}x{side}, scene {args.scene}")
-    print(f"# rollout niceness {args.nice}")
+    print(f"# rollout niceness {args.nice}" + (f", SCHED_FIFO priority {args.fifo}" if args.fifo else ""))
     with open("/proc/loadavg") as f:
         print(f"# load average before: {f.read().strip()}")
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        delay_ms = 1000 * CSOConfig().async_decode_delay_s
-        variants = {  # the name, the lead, the decode's start delay
-            "sync": ("synchronous decode", 0, {}),
-            "background": (f"background decode, lead {args.lead}, start delay {delay_ms:g} ms", args.lead, {}),
-            "nodelay": (f"background decode, lead {args.lead}, no start delay", args.lead, {"async_decode_delay_s": 0}),
-        }
         for variant in args.variants.split(","):
-            name, lead, extra = variants[variant]
+            lead = args.lead if variant == "background" else 0
+            name = f"background decode in a process, lead {lead}" if lead else "synchronous decode"
             begin = time.monotonic()
             checkpoint = save_untrained_piper_policy(
-                home / f"policy_{variant}", lead, args.weights, settings | extra, tuple(args.cameras), side, TASK
+                home / f"policy_{variant}", lead, args.weights, settings, tuple(args.cameras), side, TASK
             )
             raw = None if args.raw is None else args.raw.with_name(f"{args.raw.name}.{variant}")
             periods, calls, late = loop_run(checkpoint, home, args, side, raw)

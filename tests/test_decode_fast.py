@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import sys
-import threading
 import time
 
 import pytest
@@ -12,7 +10,6 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_cso.policy import CSOConfig, CSOPolicy
-from lerobot_cso.policy.background_decode import DECODE_NICENESS, decode_in_background
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.sampling import Sampling
 
@@ -75,8 +72,10 @@ def test_int8_sampler_stays_near_fp32_but_is_not_equivalent(policy, contexts):
     assert (logp - ref_logp)[agreeing_prefix].abs().max() <= 0.03
 
 
-def test_async_decode_gives_the_synchronous_actions_for_the_same_observations():
-    """With lead L, skill k > 0 comes from the tick after which L actions remained: replaying that is exact."""
+def test_async_decode_gives_the_synchronous_actions_from_a_lowest_priority_process_and_reset_waits():
+    """With lead L, skill k > 0 comes from the tick after which L actions remained: replaying that is exact. The
+    decode runs in a process of its own at the lowest CPU priority (session 36: a decode thread took the loop's
+    GIL); ``reset`` waits for a decode in flight and drops it, keeping the process."""
     sync, lead = full_size_policy(greedy=True), full_size_policy(greedy=True, async_decode_lead=3)
     observations = [{"observation.state": torch.randn(1, 39), "task": ["reach"]} for _ in range(24)]
     with torch.inference_mode():
@@ -89,6 +88,11 @@ def test_async_decode_gives_the_synchronous_actions_for_the_same_observations():
                 sync._action_queue.clear()
             expected.append(sync.select_action(observations[source if source is not None else t]))
     torch.testing.assert_close(torch.stack(got), torch.stack(expected))
+    pid = lead._decode_process.pid
+    assert pid != os.getpid() and os.sched_getscheduler(pid) == os.SCHED_IDLE
+    assert lead._next_chunk is not None  # tick 20 handed skill 3's decode over
+    lead.reset()
+    assert lead._next_chunk is None and not lead._action_queue and lead._decode_process.pid == pid
 
 
 def test_async_decode_lead_must_leave_a_queued_action():
@@ -96,46 +100,29 @@ def test_async_decode_lead_must_leave_a_queued_action():
         full_size_policy(async_decode_lead=8)
     with pytest.raises(ValueError, match="inference_weights"):
         full_size_policy(inference_weights="fp8")
-    for delay in (-0.001, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="async_decode_delay_s"):
-            full_size_policy(async_decode_delay_s=delay)
 
 
-def test_reset_waits_for_and_drops_a_pending_decode():
-    policy = full_size_policy(async_decode_lead=7)
+def test_the_caller_goes_on_while_the_process_decodes_errors_reach_it_and_train_ends_the_process():
+    """Handing a decode over does not wait for it (a batch of 256 takes the process far longer than the hand-over);
+    an error in the process reaches the caller and the process serves on; ``train()`` ends it (its copy of the
+    weights would go stale)."""
+    policy = full_size_policy(async_decode_lead=3)
+    obs = {"observation.state": torch.randn(1, 39), "task": ["reach"]}
+    many = {"observation.state": torch.randn(256, 39), "task": ["reach"] * 256}
     with torch.inference_mode():
-        policy.select_action({"observation.state": torch.randn(1, 39), "task": ["reach"]})
-        assert policy._next_chunk is not None
-        policy.reset()
-    assert policy._next_chunk is None and not policy._action_queue
-
-
-def _thread_and_niceness(_batch: dict) -> tuple[str, int]:
-    return threading.current_thread().name, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
-
-@pytest.mark.skipif(sys.platform != "linux", reason="niceness is per thread on Linux only")
-def test_the_background_decode_runs_on_one_kept_thread_below_the_caller():
-    """Session 26: the tick that started a decode waited for a new thread (``Thread.start``), and the decode then
-    competed with the loop's thread at the same priority; now one kept thread, ``DECODE_NICENESS`` lower."""
-    first = decode_in_background(_thread_and_niceness, {}).result()
-    second = decode_in_background(_thread_and_niceness, {}).result()
-    assert first == second and first[0].startswith("cso-decode")
-    assert first[1] == min(os.nice(0) + DECODE_NICENESS, 19) and DECODE_NICENESS > 0
-
-
-def test_the_background_decode_starts_its_delay_after_the_call_and_the_caller_runs_on():
-    """Session 35: the decode starts ``delay_s`` after the tick that handed it over, which meanwhile goes on."""
-    handed = time.perf_counter()
-    pending = decode_in_background(lambda _batch: time.perf_counter(), {}, delay_s=0.05)
-    returned = time.perf_counter()
-    started = pending.result()
-    assert returned - handed < 0.05 <= started - handed
-
-
-def test_a_background_decode_error_reaches_the_caller():
-    def broken(_batch: dict) -> torch.Tensor:
-        raise RuntimeError("decode failed")
-
-    with pytest.raises(RuntimeError, match="decode failed"):
-        decode_in_background(broken, {}).result()
+        policy.select_action(obs)  # makes the process
+        process = policy._decode_process
+        handed = time.perf_counter()
+        pending = process.decode(many)
+        returned = time.perf_counter()
+        chunks = pending.result()
+        done = time.perf_counter()
+        with pytest.raises(RuntimeError, match="shapes cannot be multiplied"):
+            process.decode({"observation.state": torch.randn(1, 5), "task": ["reach"]}).result()
+        assert process.decode(obs).result().shape == (1, policy.config.n_action_steps, 4)
+    assert chunks.shape == (256, policy.config.n_action_steps, 4)
+    assert returned - handed < 0.25 * (done - handed)
+    policy.train()
+    assert policy._decode_process is None
+    process._process.join(timeout=10)
+    assert process._process.exitcode == 0

@@ -1,56 +1,112 @@
-"""The next skill decoded on a background thread, so a control loop keeps ticking while it is sampled."""
+"""The next skill decoded in a process of its own, so a control loop keeps ticking while it is sampled."""
 
 from __future__ import annotations
 
+import io
+import multiprocessing
 import os
-import sys
-import threading
-import time
-from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+import pickle
+from multiprocessing.connection import Connection
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
-# The decode thread's niceness above the caller's (Linux, where niceness is per thread). On the PiPER twin's 30 Hz
-# loop (docs/benchmarks.md, session 26) the late ticks were mostly the ticks that started a decode: the decode
-# took the CPU from the loop's own thread before it had sent its action. Below the loop, p99 met 36.7 ms in 6 of 10
-# runs (3 of ~25 at +0) and 4-29 ticks of ~1 640 were late (13-326 at +0); a decode still finishes within its lead.
-# On a 2-core AMD VM (session 35) 82-96 % of the late ticks were still decode-start ticks, however low the decode's
-# priority: it took the GIL, not the CPU, from the loop between that tick's select_action and its send. Hence the
-# start delay (the policy's ``async_decode_delay_s``): 50-87 late ticks per 60 s run without it, 4-20 with 8 ms.
-DECODE_NICENESS = 5
-_decoder: tuple[int, ThreadPoolExecutor] | None = None  # the process that made it, and its one decode thread
+# History (docs/benchmarks.md): on the PiPER twin's 30 Hz loop the late ticks were mostly the ticks that started a
+# decode, first because the decode took the CPU from the loop (session 26: a decode thread, niced below the loop),
+# then because a decode *thread*, however low its priority, took the GIL from the loop between a tick's
+# select_action and its send (session 35: 82-96 % of the late ticks; a start delay halved them). A process has a
+# GIL of its own (session 36: about half the late ticks of the thread's in the same runs); at SCHED_IDLE, the
+# lowest CPU priority, the ticks around a decode's start were no more often late than the others.
 
 
-def _below_the_caller() -> None:
-    if sys.platform == "linux":
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(os.nice(0) + DECODE_NICENESS, 19))
+def _to_numpy(batch: dict[str, Any]) -> dict[str, Any]:
+    """Tensors as numpy arrays: pickled ~10x faster than tensors (a 64x64 camera batch: ~20 us against ~200 us)."""
+    return {k: v.detach().cpu().numpy() if isinstance(v, Tensor) else v for k, v in batch.items()}
 
 
-def _under_inference_mode(decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any], delay_s: float) -> Tensor:
-    time.sleep(delay_s)
-    with torch.inference_mode():
-        return decode(batch)
+def _serve(conn: Connection, policy_class: type, config: Any, state: bytes, seed: int) -> None:
+    """The decode process: its own copy of the policy, one batch at a time."""
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # also below a real-time (SCHED_FIFO) caller
+    torch.set_num_threads(1)
+    torch.manual_seed(seed)
+    policy = policy_class(config)
+    policy.load_state_dict(torch.load(io.BytesIO(state), weights_only=True))
+    device = torch.device(config.device or "cpu")
+    policy.to(device).eval()
+    conn.send_bytes(pickle.dumps(os.getpid()))
+    while True:
+        try:
+            request = conn.recv_bytes()
+        except EOFError:  # the policy's process closed its end or exited
+            return
+        try:
+            batch = pickle.loads(request)
+            batch = {k: torch.from_numpy(v).to(device) if isinstance(v, np.ndarray) else v for k, v in batch.items()}
+            with torch.inference_mode():
+                reply = (None, policy._executed_chunk(batch).cpu().numpy())
+        except Exception as error:  # noqa: BLE001 - handed to the caller, which re-raises it
+            reply = (error, None)
+        conn.send_bytes(pickle.dumps(reply, protocol=5))
 
 
-def decode_in_background(
-    decode: Callable[[dict[str, Any]], Tensor], batch: dict[str, Any], delay_s: float = 0.0
-) -> Future[Tensor]:
-    """``decode(batch)`` under ``torch.inference_mode`` on the process's one decode thread, ``delay_s`` after
-    this call (the caller's tick goes on alone that long); the future's ``result()`` waits for it and re-raises
-    what it raised.
+class PendingDecode:
+    """The reply to one request to a ``DecodeProcess``; ``result()`` waits for it and re-raises its error."""
 
-    The thread is made by the first call and kept, at ``DECODE_NICENESS`` below the caller: handing it a decode
-    is putting it on a queue, so the tick that starts a decode does not wait for a new thread to be scheduled
-    (``Thread.start`` waits until the thread runs: 0.5 ms median, 4-5 ms p99 on the twin's loop). Torch kernels
-    release the GIL, so the caller's thread runs on while the decode computes. At exit the interpreter waits for
-    a decode in progress (``concurrent.futures`` joins its threads) instead of tearing torch down under it, which
-    aborts the process ("terminate called without an active exception").
+    def __init__(self, conn: Connection, device: torch.device) -> None:
+        self._conn, self._device = conn, device
+        self._reply: tuple[Exception | None, np.ndarray | None] | None = None
+
+    def result(self) -> Tensor:
+        if self._reply is None:
+            self._reply = pickle.loads(self._conn.recv_bytes())
+        error, chunk = self._reply
+        if error is not None:
+            raise error
+        return torch.from_numpy(chunk).to(self._device)
+
+
+class DecodeProcess:
+    """A copy of a policy in a spawned process at the lowest CPU priority (SCHED_IDLE), decoding the next skill's
+    executed actions there (``policy._executed_chunk``) while the caller's loop ticks on.
+
+    Requests and replies are pickled as numpy arrays on a pipe by the caller's own thread: the caller's process runs
+    no helper thread (``concurrent.futures.ProcessPoolExecutor`` would run two, which take its GIL as a thread
+    decode did). One request may be pending at a time. Starting takes seconds (a Python with torch, and the policy
+    rebuilt from its config and weights); the weights are those at the start. The process ends when this object
+    is closed or dropped, or with the caller's process (it is a daemon).
     """
-    global _decoder
-    if _decoder is None or _decoder[0] != os.getpid():  # a forked child has the parent's object, not its thread
-        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cso-decode", initializer=_below_the_caller)
-        _decoder = (os.getpid(), executor)
-    return _decoder[1].submit(_under_inference_mode, decode, batch, delay_s)
+
+    def __init__(self, policy: torch.nn.Module) -> None:
+        weights = io.BytesIO()
+        torch.save({k: v.detach().cpu() for k, v in policy.state_dict().items()}, weights)
+        seed = int(torch.randint(2**31 - 1, ()))  # drawn from the caller's generator
+        context = multiprocessing.get_context("spawn")  # a fork would copy torch's threads' state mid-flight
+        self._conn, child = context.Pipe()
+        self._process = context.Process(
+            target=_serve,
+            args=(child, type(policy), policy.config, weights.getvalue(), seed),
+            name="cso-decode",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        try:
+            self.pid: int = pickle.loads(self._conn.recv_bytes())
+        except EOFError:
+            self._process.join()
+            raise RuntimeError(
+                f"the decode process exited with code {self._process.exitcode} before it was ready"
+            ) from None
+
+    def decode(self, batch: dict[str, Any]) -> PendingDecode:
+        """Hand ``batch`` over: the process decodes from it while the caller goes on."""
+        device = next((v.device for v in batch.values() if isinstance(v, Tensor)), torch.device("cpu"))
+        self._conn.send_bytes(pickle.dumps(_to_numpy(batch), protocol=5))
+        return PendingDecode(self._conn, device)
+
+    def close(self) -> None:
+        """End the process (it finishes a decode in progress first)."""
+        self._conn.close()
+        self._process.join(timeout=30)

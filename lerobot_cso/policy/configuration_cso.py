@@ -125,13 +125,11 @@ class CSOConfig(PreTrainedConfig):
     # Inference only (`select_action` / `predict_action_chunk`; the CSO hooks and training always use fp32):
     # the prior's weights during decoding ("float32": the same numbers as training; "int8": weight-only int8,
     # faster at batch 1 but not equivalent, see docs/benchmarks.md), and how many queued actions may remain
-    # when the next skill's decode starts in a background thread from that tick's observation (0: decode
-    # synchronously when the queue is empty, the policy's standard behaviour), and how long that thread waits
-    # before it starts, so that the tick which handed it over sends its action first (at 30 Hz a tick's own work
-    # takes ~2 ms and the decode has `async_decode_lead` periods; docs/benchmarks.md, session 35).
+    # when the next skill's decode starts in a background process from that tick's observation (0: decode
+    # synchronously when the queue is empty, the policy's standard behaviour; the decode must finish within
+    # `async_decode_lead` control periods, or the tick that needs it waits).
     inference_weights: str = "float32"
     async_decode_lead: int = 0
-    async_decode_delay_s: float = 0.008
 
     # Training.
     n_autoencoder_steps: int = 1000
@@ -177,7 +175,6 @@ class CSOConfig(PreTrainedConfig):
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:
             raise ValueError(f"async_decode_lead must be in [0, n_action_steps={self.n_action_steps})")
-        check("async_decode_delay_s", self.async_decode_delay_s, ge=0)
 
     @property
     def sampling(self) -> Sampling:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections import deque
-from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +12,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from lerobot_cso.policy.background_decode import decode_in_background
+from lerobot_cso.policy.background_decode import DecodeProcess, PendingDecode
 from lerobot_cso.policy.configuration_cso import (
     SKILL_COLUMNS,
     SKILL_START_KEY,
@@ -101,6 +100,7 @@ class CSOPolicy(PreTrainedPolicy):
         self.register_buffer("autoencoder_steps_done", torch.zeros((), dtype=torch.long))
         self._task_ids = {task: i for i, task in enumerate(config.tasks)}
         self.set_encoders_frozen(config.freeze_encoders)
+        self._decode_process: DecodeProcess | None = None  # with async_decode_lead > 0, made on first use
         self.reset()
 
     @classmethod
@@ -190,7 +190,7 @@ class CSOPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
-        self._next_chunk: Future[Tensor] | None = getattr(self, "_next_chunk", None)
+        self._next_chunk: PendingDecode | None = getattr(self, "_next_chunk", None)
         if self._next_chunk is not None:  # a decode started for the previous episode is waited for, dropped
             self._next_chunk.result()
             self._next_chunk = None
@@ -202,6 +202,10 @@ class CSOPolicy(PreTrainedPolicy):
         if self.config.freeze_encoders:  # frozen encoders keep their BatchNorm statistics too
             self.encoders.eval()
         self._sampler = None  # weights may change while training: an int8 copy would go stale
+        if getattr(self, "_decode_process", None) is not None:  # and so would the decode process's copy
+            self.reset()
+            self._decode_process.close()
+            self._decode_process = None
         return self
 
     def _sample_for_inference(self, batch: dict[str, Any]) -> Tensor:
@@ -224,19 +228,21 @@ class CSOPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
         """Decode a skill, execute its first ``n_action_steps`` actions, then replan.
 
-        With ``async_decode_lead = L > 0`` the next skill is decoded in a background thread from the
-        observation of the tick on which L actions remain queued, starting ``async_decode_delay_s`` later, so the
-        control loop keeps ticking while it runs; the queue is refilled from it when it runs dry (waiting only if
-        the decode is not done yet).
+        With ``async_decode_lead = L > 0`` the next skill is decoded in a process of its own (a copy of this
+        policy made on the first call, which waits seconds for it) from the observation of the tick on which L
+        actions remain queued, so the control loop keeps ticking while it runs; the queue is refilled from it when
+        it runs dry (waiting only if the decode is not done yet).
         """
+        lead = self.config.async_decode_lead
+        if lead and self._decode_process is None:
+            self._decode_process = DecodeProcess(self)
         if not self._action_queue:
             pending, self._next_chunk = self._next_chunk, None
             chunk = self._executed_chunk(batch) if pending is None else pending.result()
             self._action_queue.extend(chunk.transpose(0, 1))
         action = self._action_queue.popleft()
-        lead = self.config.async_decode_lead
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
-            self._next_chunk = decode_in_background(self._executed_chunk, batch, self.config.async_decode_delay_s)
+            self._next_chunk = self._decode_process.decode(batch)
         return action
 
     @property
