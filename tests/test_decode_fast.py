@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import pytest
@@ -93,6 +94,10 @@ def test_async_decode_gives_the_synchronous_actions_from_a_lowest_priority_proce
     assert lead._next_chunk is not None  # tick 20 handed skill 3's decode over
     lead.reset()
     assert lead._next_chunk is None and not lead._action_queue and lead._decode_process.pid == pid
+    os.kill(pid, signal.SIGKILL)  # a process that died is a clear error, not a hang or an EOFError
+    lead._decode_process._process.join(timeout=10)
+    with pytest.raises(RuntimeError, match=rf"decode process \(pid {pid}\) ended, exit code -9"):
+        lead._decode_process.decode(observations[0]).result()
 
 
 def test_async_decode_lead_must_leave_a_queued_action():

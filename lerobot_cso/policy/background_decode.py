@@ -28,7 +28,10 @@ def _to_numpy(batch: dict[str, Any]) -> dict[str, Any]:
 
 def _serve(conn: Connection, policy_class: type, config: Any, state: bytes, seed: int) -> None:
     """The decode process: its own copy of the policy, one batch at a time."""
-    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # also below a real-time (SCHED_FIFO) caller
+    if hasattr(os, "SCHED_IDLE"):  # Linux: also below a real-time (SCHED_FIFO) caller, whose policy it inherits
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    else:
+        os.nice(19)
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     policy = policy_class(config)
@@ -48,19 +51,23 @@ def _serve(conn: Connection, policy_class: type, config: Any, state: bytes, seed
                 reply = (None, policy._executed_chunk(batch).cpu().numpy())
         except Exception as error:  # noqa: BLE001 - handed to the caller, which re-raises it
             reply = (error, None)
-        conn.send_bytes(pickle.dumps(reply, protocol=5))
+        try:
+            message = pickle.dumps(reply, protocol=5)
+        except Exception:  # noqa: BLE001 - an error that does not pickle reaches the caller as its text
+            message = pickle.dumps((RuntimeError(f"in the decode process: {reply[0]!r}"), None))
+        conn.send_bytes(message)
 
 
 class PendingDecode:
     """The reply to one request to a ``DecodeProcess``; ``result()`` waits for it and re-raises its error."""
 
-    def __init__(self, conn: Connection, device: torch.device) -> None:
-        self._conn, self._device = conn, device
+    def __init__(self, process: DecodeProcess, device: torch.device) -> None:
+        self._process, self._device = process, device
         self._reply: tuple[Exception | None, np.ndarray | None] | None = None
 
     def result(self) -> Tensor:
         if self._reply is None:
-            self._reply = pickle.loads(self._conn.recv_bytes())
+            self._reply = self._process.receive()
         error, chunk = self._reply
         if error is not None:
             raise error
@@ -92,19 +99,27 @@ class DecodeProcess:
         )
         self._process.start()
         child.close()
+        self.pid: int = self.receive()
+
+    def receive(self) -> Any:
+        """The process's next message; a process that died (killed, out of memory) is a clear error."""
         try:
-            self.pid: int = pickle.loads(self._conn.recv_bytes())
-        except EOFError:
-            self._process.join()
-            raise RuntimeError(
-                f"the decode process exited with code {self._process.exitcode} before it was ready"
-            ) from None
+            return pickle.loads(self._conn.recv_bytes())
+        except (EOFError, OSError):
+            raise self._ended() from None
 
     def decode(self, batch: dict[str, Any]) -> PendingDecode:
         """Hand ``batch`` over: the process decodes from it while the caller goes on."""
         device = next((v.device for v in batch.values() if isinstance(v, Tensor)), torch.device("cpu"))
-        self._conn.send_bytes(pickle.dumps(_to_numpy(batch), protocol=5))
-        return PendingDecode(self._conn, device)
+        try:
+            self._conn.send_bytes(pickle.dumps(_to_numpy(batch), protocol=5))
+        except OSError:
+            raise self._ended() from None
+        return PendingDecode(self, device)
+
+    def _ended(self) -> RuntimeError:
+        self._process.join(timeout=5)
+        return RuntimeError(f"the decode process (pid {self._process.pid}) ended, exit code {self._process.exitcode}")
 
     def close(self) -> None:
         """End the process (it finishes a decode in progress first)."""
