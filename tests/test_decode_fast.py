@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 
 import pytest
@@ -90,7 +91,9 @@ def test_async_decode_gives_the_synchronous_actions_from_a_lowest_priority_proce
             expected.append(sync.select_action(observations[source if source is not None else t]))
     torch.testing.assert_close(torch.stack(got), torch.stack(expected))
     pid = lead._decode_process.pid
-    assert pid != os.getpid() and os.sched_getscheduler(pid) == os.SCHED_IDLE
+    assert pid != os.getpid()
+    if sys.platform == "linux":
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
     assert lead._next_chunk is not None  # tick 20 handed skill 3's decode over
     lead.reset()
     assert lead._next_chunk is None and not lead._action_queue and lead._decode_process.pid == pid

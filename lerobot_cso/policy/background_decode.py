@@ -80,9 +80,9 @@ class DecodeProcess:
 
     Requests and replies are pickled as numpy arrays on a pipe by the caller's own thread: the caller's process runs
     no helper thread (``concurrent.futures.ProcessPoolExecutor`` would run two, which take its GIL as a thread
-    decode did). One request may be pending at a time. Starting takes seconds (a Python with torch, and the policy
-    rebuilt from its config and weights); the weights are those at the start. The process ends when this object
-    is closed or dropped, or with the caller's process (it is a daemon).
+    decode did). Replies come in the order of the requests; the policy keeps one pending at a time. Starting takes
+    seconds (a Python with torch, and the policy rebuilt from its config and weights); the weights are those at the
+    start. The process ends when this object is closed or dropped, or with the caller's process (it is a daemon).
     """
 
     def __init__(self, policy: torch.nn.Module) -> None:

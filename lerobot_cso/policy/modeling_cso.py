@@ -190,10 +190,10 @@ class CSOPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------------------------ LeRobot API
     def reset(self) -> None:
-        self._next_chunk: PendingDecode | None = getattr(self, "_next_chunk", None)
-        if self._next_chunk is not None:  # a decode started for the previous episode is waited for, dropped
-            self._next_chunk.result()
-            self._next_chunk = None
+        pending: PendingDecode | None = getattr(self, "_next_chunk", None)
+        self._next_chunk: PendingDecode | None = None
+        if pending is not None:  # a decode started for the previous episode: waited for (an error raised), dropped
+            pending.result()
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self._sampler: FastSkillSampler | None = None  # rebuilt from the current weights on next use
 
