@@ -164,13 +164,17 @@ def main() -> None:
     parser.add_argument("--scene", default="press_button", choices=("press_button", "cube_in_bowl"))
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "metaworld_vision.yaml")
     parser.add_argument("--nice", type=int, default=0, help="the rollout's niceness (negative: above the emulator's)")
-    parser.add_argument("--fifo", type=int, default=0, help="run the rollout under SCHED_FIFO at this priority")
+    parser.add_argument("--fifo", type=int, default=0, metavar="P", help="the rollout at SCHED_FIFO P, 1-99 (root)")
     parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background")
     parser.add_argument("--raw", type=Path, help="write each variant's command times and timed calls to FILE.<variant>")
     args = parser.parse_args()
     unknown = set(args.variants.split(",")) - set(VARIANTS)
     if unknown:
         parser.error(f"--variants: unknown {', '.join(sorted(unknown))} ({', '.join(VARIANTS)})")
+    if not 0 <= args.fifo <= 99:
+        parser.error(f"--fifo: a SCHED_FIFO priority is 1-99, got {args.fifo}")
+    if args.fifo and os.geteuid() != 0:
+        parser.error("--fifo: real-time scheduling needs root")
     if args.raw is not None and not os.access(args.raw.parent, os.W_OK):
         parser.error(f"--raw: cannot write in {args.raw.parent}")
     settings, side = vision_settings(args.config)
