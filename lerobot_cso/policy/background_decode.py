@@ -17,8 +17,9 @@ from torch import Tensor
 # decode, first because the decode took the CPU from the loop (session 26: a decode thread, niced below the loop),
 # then because a decode *thread*, however low its priority, took the GIL from the loop between a tick's
 # select_action and its send (session 35: 82-96 % of the late ticks; a start delay halved them). A process has a
-# GIL of its own (session 36: about half the late ticks of the thread's in the same runs); at SCHED_IDLE, the
-# lowest CPU priority, the ticks around a decode's start were no more often late than the others.
+# GIL of its own (session 36: about half the late ticks of the thread's in the same runs, the spike at the tick after
+# the hand-over gone); at SCHED_IDLE, the lowest CPU priority, the hand-over tick itself stands out less than at
+# niceness +5, though still a little in most runs.
 
 
 def _to_numpy(batch: dict[str, Any]) -> dict[str, Any]:
