@@ -2,16 +2,24 @@
 
 MuJoCo renders offscreen with ``MUJOCO_GL=egl`` (``piper_twin`` sets it unless told otherwise, if it is
 imported before ``mujoco``; ``osmesa`` works too). The GL context belongs to the thread that made the
-renderer: render on that thread.
+renderer: render on that thread. Every renderer of a process takes one lock around its GL calls: two
+threads rendering at once (the front and the wrist camera of one ``lerobot-record``) crash the process with a
+segmentation fault in ``mjr_render``/``mjr_readPixels`` (EGL on Mesa's llvmpipe, mujoco 3.3: 2 crashes in about
+7 minutes of two threads rendering 64x64 frames without pause; session 37).
 """
 
 from __future__ import annotations
+
+import threading
 
 import mujoco
 import numpy as np
 
 from .scenes import compile_scene, get_scene
 from .state_channel import TwinSnapshot
+
+# One GL call sequence at a time in this process (see the module's docstring).
+GL_LOCK = threading.Lock()
 
 
 class TwinRenderer:
@@ -23,7 +31,8 @@ class TwinRenderer:
         self.model.vis.global_.offwidth = max(width, self.model.vis.global_.offwidth)
         self.model.vis.global_.offheight = max(height, self.model.vis.global_.offheight)
         self.data = mujoco.MjData(self.model)
-        self._renderer = mujoco.Renderer(self.model, height, width)
+        with GL_LOCK:
+            self._renderer = mujoco.Renderer(self.model, height, width)
 
     def render(self, snapshot: TwinSnapshot, view: str) -> np.ndarray:
         """The ``(height, width, 3)`` uint8 image of camera ``view`` in the state ``snapshot``."""
@@ -35,8 +44,10 @@ class TwinRenderer:
         d.mocap_quat[:] = snapshot.mocap_quat
         mujoco.mj_kinematics(self.model, d)
         mujoco.mj_camlight(self.model, d)
-        self._renderer.update_scene(d, camera=view)
-        return self._renderer.render()
+        with GL_LOCK:
+            self._renderer.update_scene(d, camera=view)
+            return self._renderer.render()
 
     def close(self) -> None:
-        self._renderer.close()
+        with GL_LOCK:
+            self._renderer.close()

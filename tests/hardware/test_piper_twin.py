@@ -451,6 +451,48 @@ def test_twin_cameras_render_the_published_state_through_lerobots_camera_factory
         publishing.stop()
 
 
+def test_two_threads_never_render_at_once_so_two_cameras_cannot_crash_the_process():
+    """Two renderers rendering at the same moment crash the process (EGL on llvmpipe; renderer.py): the second
+    thread's GL calls must wait while the first one's are under way, forced here by a gate inside the first."""
+    snapshot = TwinPlant("cube_in_bowl", seed=1, pose_rad=RAISED).snapshot()
+    inside, release, b_ready = threading.Event(), threading.Event(), threading.Event()
+    entered: dict[str, float] = {}
+    images: dict[str, np.ndarray] = {}
+
+    def render_on_own_thread(view: str) -> None:
+        renderer = TwinRenderer("cube_in_bowl", 16, 16)  # its GL context belongs to this thread
+        real = renderer._renderer.render
+
+        def gated(*args, **kwargs):
+            entered[view] = time.monotonic()
+            if view == "front":
+                inside.set()
+                assert release.wait(10)
+            return real(*args, **kwargs)
+
+        renderer._renderer.render = gated
+        if view == "wrist":
+            b_ready.set()
+            assert inside.wait(10)
+        images[view] = renderer.render(snapshot, view)
+        renderer.close()
+
+    wrist = threading.Thread(target=render_on_own_thread, args=("wrist",))
+    wrist.start()
+    assert b_ready.wait(30)
+    front = threading.Thread(target=render_on_own_thread, args=("front",))
+    front.start()
+    assert inside.wait(30)
+    time.sleep(0.3)  # the wrist thread had every chance to start rendering
+    assert "wrist" not in entered
+    released = time.monotonic()
+    release.set()
+    front.join(30)
+    wrist.join(30)
+    assert entered["wrist"] >= released
+    assert {v: img.shape for v, img in images.items()} == {"front": (16, 16, 3), "wrist": (16, 16, 3)}
+
+
 def test_a_twin_camera_refuses_to_connect_without_a_twin_and_to_render_a_stale_state():
     group, port = unique_udp_channel()
     config = PiperTwinCameraConfig(group=group, port=port, width=16, height=16, connect_timeout_s=0.1, max_age_s=0.2)
