@@ -7,6 +7,8 @@ multicast group and port, exactly as two USB-CAN adapters would be two SocketCAN
 from __future__ import annotations
 
 import json
+import shutil
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -277,6 +279,62 @@ def test_piper_record_stamps_a_linked_recording_and_replay_deploys_in_that_mode(
     # The 0x151 of enable (resent only until the status confirms it), none with the commands: high-follow at 100 %.
     assert 1 <= len(follower_bus.modes) < 10 < len(follower_bus.commands.joints)
     assert set(follower_bus.modes) == {bytes.fromhex("010164ad00000000")}
+
+
+def test_piper_merge_carries_the_motion_stamp_that_lerobots_merge_drops(recorded, home):
+    """The batches-and-merge recipe of docs/real-arm.md: LeRobot's merge writes no ``piper_motion``; piper-merge
+    (the real console script) merges through it and stamps the result with the parts' mode."""
+    root, _ = recorded
+    copy, merged = home / "datasets" / "piper_demo_copy", home / "datasets" / "piper_merged"
+    shutil.copytree(root, copy)
+    out = run_cli(
+        "piper-merge",
+        [
+            "--new_repo_id=local/piper_merged",
+            f"--new_root={merged}",
+            "--operation.type=merge",
+            "--operation.repo_ids=[local/piper_demo, local/piper_demo_copy]",
+            f"--operation.roots=[{root}, {copy}]",
+        ],
+        home,
+    )
+    assert out.returncode == 0, explain(out)
+    info = json.loads((merged / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 4 and info["piper_motion"] == {"motion_mode": "position", "speed_percent": 50}
+    assert len(read_frames(merged)["action"]) == 2 * len(read_frames(root)["action"])
+    assert [p.name for p in merged.parent.iterdir() if p.name.startswith(".")] == []
+
+
+def test_piper_merge_refuses_parts_of_other_modes_and_leaves_nothing_when_lerobot_fails(
+    recorded, linked_recording, home, monkeypatch, capsys
+):
+    from lerobot_robot_piper import merge_cli
+
+    monkeypatch.setattr(sys, "argv", sys.argv)  # main() sets it
+    root, _ = recorded
+    target = home / "datasets" / "mixed"
+    args = ["--new_repo_id=local/mixed", f"--new_root={target}", "--operation.type=merge"]
+    parts = [
+        "--operation.repo_ids=[local/piper_demo, local/piper_linked]",
+        f"--operation.roots=[{root}, {linked_recording}]",
+    ]
+    assert merge_cli.main([*args, *parts]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"piper-merge: error: the parts were recorded in different motion modes ({root}: position at 50 %; "
+        f"{linked_recording}: high_follow at 100 %); nothing merged"
+    ]
+
+    def fails_half_way(cfg):  # LeRobot stops after writing part of the merged dataset
+        (Path(cfg.new_root) / "data").mkdir(parents=True)
+        raise ValueError("features differ")
+
+    monkeypatch.setattr(merge_cli, "edit_dataset", fails_half_way)
+    same = ["--operation.repo_ids=[local/piper_demo, local/piper_demo]", f"--operation.roots=[{root}, {root}]"]
+    assert merge_cli.main([*args, *same]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["piper-merge: error: LeRobot's merge failed: features differ; nothing merged"]
+    assert not [p for p in target.parent.iterdir() if "mixed" in p.name]
 
 
 TINY_CSO = [
