@@ -81,8 +81,10 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
     # late wake-up reads high (CI once read 310 Hz), so judge the median of seven of its windows. The emulator
     # thread shares this process (and its GIL) with the SDK's parser, so a loaded machine also lowers the rate
     # actually sent (135 Hz seen under three busy loops): compare with the joint frames sent meanwhile. The two
-    # threads run late independently (the SDK read 200 Hz while 156 Hz were sent, hardware tests on two workers),
-    # so within 40 %: what this catches is the SDK counting only some of our frames (every other one: 2×).
+    # threads run late independently (the SDK read 200 Hz while 156 Hz were sent, hardware tests on two workers; in
+    # the full suite on a Zen 3 VM 200 Hz while 104 Hz were sent: its thread woke every ~0.2 s and counted two
+    # windows' frames as one), so only a reading far below what was sent is judged: what this catches is the SDK
+    # counting only some of our frames (every other one: half).
     frames = list(iter(lambda: monitor.recv(timeout=0), None))
     rates, started = [], time.monotonic()
     for _ in range(7):
@@ -90,7 +92,7 @@ def test_vendor_sdk_reads_our_state_and_its_commands_move_the_arm(sdk_and_arm):
         time.sleep(0.11)
     window = list(iter(lambda: monitor.recv(timeout=0), None))
     sent_hz = sum(m.arbitration_id == 0x2A5 for m in window) / (time.monotonic() - started)
-    assert sent_hz > 50 and statistics.median(rates) == pytest.approx(sent_hz, rel=0.4)
+    assert sent_hz > 50 and statistics.median(rates) > 0.6 * sent_hz, (rates, sent_hz)
 
     # Our codec decodes the SDK's frames to the same angles.
     sent = [m for m in frames + window if m.arbitration_id == 0x155]
