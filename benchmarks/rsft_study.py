@@ -37,7 +37,7 @@ from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.sampling import Sampling
 from lerobot_cso.worlds.metaworld.tasks import resolve_tasks, task_description
-from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
+from lerobot_cso.worlds.metaworld.world import policy_pool
 
 KEEP_ALL = {"max_successes_per_state": None}  # the paper's rule
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -86,7 +86,8 @@ def success_rates(policy_path: Path, tasks: list[str], n_states: int, k: int, nu
     policy, pre, post = load_policy(policy_path)
     first = len(seeds.TRAIN) // 2 - n_states
     states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, n_states)]
-    with RolloutEngine(policy, pre, post, metaworld_pool(num_envs, max_steps=200), task_description) as engine:
+    pool = policy_pool(policy.config.input_features, num_envs, max_steps=200, frames="decisions")  # camera or state
+    with RolloutEngine(policy, pre, post, pool, task_description) as engine:
         result = engine.rollout(states, k=k, sampling=Sampling(), seed=11, progress=str(policy_path.parent.name))
     return {t: [sum(e.success for e in g) for g in result.groups() if g[0].task == t] for t in tasks}
 

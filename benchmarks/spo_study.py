@@ -8,7 +8,8 @@ Every variant runs ``--config``'s SPO section from the R-SFT checkpoint of a fin
   ``i<M>`` after the first continues a copy of the one before it.
 * ``lr<x>``: the learning rate x; ``g<B>``: B groups per iteration; ``k<K>``: K samples per group; ``t<T>``: the
   rollouts' sampling temperature T (also the one the ratios are computed at); ``p<P>``: a state pool of P
-  training states per task; ``e<E>``: E epochs over each iteration's rollouts. Each runs as many iterations as
+  training states per task; ``e<E>``: E epochs over each iteration's rollouts; ``rk<K>``: the ratios taken under
+  the top-K-renormalised distribution (``ratio_top_k``; the rollouts sample top-k). Each runs as many iterations as
   the first ``i<M>`` (the baseline), from the R-SFT checkpoint.
 
 Every resulting policy is rolled out from the states that ``rsft_study.py`` uses: the last ``--states`` of the
@@ -47,6 +48,7 @@ SETTINGS = {
     "t": ("temperature", float),
     "p": ("state_pool", int),
     "e": ("epochs", int),
+    "rk": ("ratio_top_k", int),
 }
 
 
@@ -58,7 +60,7 @@ def parse_variant(name: str) -> tuple[str, Any]:
             return field, kind(name.removeprefix(prefix))
     raise ValueError(
         f"unknown variant '{name}': i<iterations>, lr<lr>, g<groups>, k<group size>, t<temperature>, "
-        "p<state pool> or e<epochs>"
+        "p<state pool>, e<epochs> or rk<ratio top-k>"
     )
 
 
@@ -125,6 +127,8 @@ def main() -> int:
                 "episodes": sum(h["episodes"] for h in history),
                 "clip_fraction": mean_of(history, "clip_fraction"),
                 "approx_kl": mean_of(history, "approx_kl"),
+                "entropy": [h.get("entropy") for h in history],
+                "ratio_mean": mean_of(history, "ratio_mean"),
                 "rejection_rate": mean_of(history, "rejection_rate"),
                 "successes": success_rates(out / "pretrained_model", tasks, args.states, args.k, args.num_envs),
             }
@@ -133,8 +137,11 @@ def main() -> int:
     n = args.states * args.k
     print(f"\nSuccess rate (%) over {args.states} training-range states × {args.k} per task (± 1 s.e.)")
     header = " | ".join(tasks)
-    print(f"| variant | {header} | mean | SPO episodes | clip fraction | approx. KL | groups' SR, last 3 iterations |")
-    print("|---|" + "---:|" * (len(tasks) + 4) + "---|")
+    print(
+        f"| variant | {header} | mean | SPO episodes | clip fraction | approx. KL | mean ratio | prior entropy, "
+        "first → last iteration | groups' SR, last 3 iterations |"
+    )
+    print("|---|" + "---:|" * (len(tasks) + 5) + "---|---|")
     for name in names:
         row = rows[name]
         p = np.array([sum(row["successes"][t]) / n for t in tasks])
@@ -142,9 +149,12 @@ def main() -> int:
         last = ", ".join(f"{x:.2f}" for x in row["groups_sr"][-3:])
         cells = " | ".join(f"{100 * x:.1f}" for x in p)
         clip, kl = row["clip_fraction"], row["approx_kl"]
+        entropy = [e for e in row.get("entropy", []) if e is not None]
+        spread = f"{entropy[0]:.2f} → {entropy[-1]:.2f}" if entropy else "-"
+        ratio = f"{row['ratio_mean']:.3f}" if row.get("ratio_mean") is not None else "-"
         print(
             f"| {name} | {cells} | {100 * p.mean():.1f} ± {100 * se:.1f} | {row['episodes']} | {clip:.3f} | "
-            f"{kl:.4f} | {last} |"
+            f"{kl:.4f} | {ratio} | {spread} | {last} |"
         )
     return 0
 
