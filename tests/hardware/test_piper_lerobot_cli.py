@@ -311,6 +311,9 @@ def test_piper_merge_refuses_parts_of_other_modes_and_leaves_nothing_when_lerobo
     from lerobot_robot_piper import merge_cli
 
     monkeypatch.setattr(sys, "argv", sys.argv)  # main() sets it
+    # LeRobot's init_logging would leave a root handler on this test's captured stderr, which later tests in this
+    # process would then write to after it closed ("--- Logging error ---" in their stderr).
+    monkeypatch.setattr(merge_cli, "init_logging", lambda: None)
     root, _ = recorded
     target = home / "datasets" / "mixed"
     args = ["--new_repo_id=local/mixed", f"--new_root={target}", "--operation.type=merge"]
