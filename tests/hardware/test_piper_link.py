@@ -1,9 +1,10 @@
-"""The stale-feedback watchdog judged on exact, made-up times (no bus, no threads)."""
+"""The link's parts without an arm: the stale-feedback watchdog judged on exact, made-up times (no bus, no
+threads), and what opening a bus does to python-can's logging."""
 
 from __future__ import annotations
 
 import pytest
-from piper_can.link import Watchdog
+from piper_can.link import Watchdog, open_bus
 
 PERIOD = 0.005
 LIMIT = 3 * PERIOD
@@ -59,3 +60,25 @@ def test_a_disarmed_watchdog_judges_nothing_and_timeouts_must_be_positive():
     assert watchdog.overdue(1e9) == [] and watchdog.next_deadline() is None
     with pytest.raises(ValueError, match="0x2A5 must be positive"):
         Watchdog({0x2A5: 0.0})
+
+
+def test_opening_a_bus_stops_python_cans_per_frame_record_but_keeps_a_level_set_on_purpose():
+    """LeRobot's ``init_logging`` leaves the root logger at NOTSET, so python-can's level-9 "Received" record was
+    built for each of the arm's 3 040 frames/s (≈ 15 µs each, GIL held) and dropped by every handler."""
+    import logging
+
+    root, frames = logging.getLogger(), logging.getLogger("can.bus")
+    kept = root.level, frames.level
+    try:
+        root.setLevel(logging.NOTSET)  # as init_logging leaves it
+        frames.setLevel(logging.NOTSET)
+        assert frames.isEnabledFor(9)  # the waste, before
+        open_bus("virtual", "quiet-frame-log", 1_000_000, {}).shutdown()
+        assert frames.level == logging.DEBUG and not frames.isEnabledFor(9)
+
+        frames.setLevel(5)  # someone who wants to see every frame
+        open_bus("virtual", "quiet-frame-log", 1_000_000, {}).shutdown()
+        assert frames.level == 5 and frames.isEnabledFor(9)
+    finally:
+        root.setLevel(kept[0])
+        frames.setLevel(kept[1])
