@@ -112,14 +112,18 @@ def test_async_decode_lead_must_leave_a_queued_action():
 
 def test_the_caller_goes_on_while_the_process_decodes_errors_reach_it_and_train_ends_the_process():
     """Handing a decode over does not wait for it (a batch of 256 takes the process far longer than the hand-over);
-    an error in the process reaches the caller and the process serves on; ``train()`` ends it (its copy of the
-    weights would go stale)."""
+    an error in the process reaches the caller and the process serves on; ``reset()`` in eval mode starts it (before
+    a control loop's first tick); ``train()`` ends it (its copy of the weights would go stale)."""
     policy = full_size_policy(async_decode_lead=3)
     obs = {"observation.state": torch.randn(1, 39), "task": ["reach"]}
     many = {"observation.state": torch.randn(256, 39), "task": ["reach"] * 256}
+    assert policy._decode_process is None  # made in training mode, then put in eval mode (no reset since)
+    policy.reset()  # as LeRobot's rollout does in its set-up: the process starts there, not on the first tick
+    process = policy._decode_process
+    assert process is not None and process.pid != os.getpid()
     with torch.inference_mode():
-        policy.select_action(obs)  # makes the process
-        process = policy._decode_process
+        policy.select_action(obs)
+        assert policy._decode_process is process
         handed = time.perf_counter()
         pending = process.decode(many)
         returned = time.perf_counter()

@@ -100,7 +100,7 @@ class CSOPolicy(PreTrainedPolicy):
         self.register_buffer("autoencoder_steps_done", torch.zeros((), dtype=torch.long))
         self._task_ids = {task: i for i, task in enumerate(config.tasks)}
         self.set_encoders_frozen(config.freeze_encoders)
-        self._decode_process: DecodeProcess | None = None  # with async_decode_lead > 0, made on first use
+        self._decode_process: DecodeProcess | None = None  # with async_decode_lead > 0: see select_action
         self.reset()
 
     @classmethod
@@ -196,6 +196,10 @@ class CSOPolicy(PreTrainedPolicy):
             pending.result()
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self._sampler: FastSkillSampler | None = None  # rebuilt from the current weights on next use
+        if self.config.async_decode_lead and not self.training:
+            # LeRobot's rollout resets the policy in its set-up: the process's seconds of start are spent there,
+            # not by the first tick of the control loop (inside its --duration, the arm holding still).
+            self._start_decode_process()
 
     def train(self, mode: bool = True) -> CSOPolicy:
         super().train(mode)
@@ -229,13 +233,13 @@ class CSOPolicy(PreTrainedPolicy):
         """Decode a skill, execute its first ``n_action_steps`` actions, then replan.
 
         With ``async_decode_lead = L > 0`` the next skill is decoded in a process of its own (a copy of this
-        policy made on the first call, which waits seconds for it) from the observation of the tick on which L
-        actions remain queued, so the control loop keeps ticking while it runs; the queue is refilled from it when
-        it runs dry (waiting only if the decode is not done yet).
+        policy, started by ``reset`` in eval mode or else by the first call: seconds either way) from the
+        observation of the tick on which L actions remain queued, so the control loop keeps ticking while it runs;
+        the queue is refilled from it when it runs dry (waiting only if the decode is not done yet).
         """
         lead = self.config.async_decode_lead
-        if lead and self._decode_process is None:
-            self._decode_process = DecodeProcess(self)
+        if lead:  # started by reset in eval mode, else now, before the first action (never mid-motion)
+            self._start_decode_process()
         if not self._action_queue:
             pending, self._next_chunk = self._next_chunk, None
             chunk = self._executed_chunk(batch) if pending is None else pending.result()
@@ -244,6 +248,11 @@ class CSOPolicy(PreTrainedPolicy):
         if lead and len(self._action_queue) == lead and self._next_chunk is None:
             self._next_chunk = self._decode_process.decode(batch)
         return action
+
+    def _start_decode_process(self) -> None:
+        """Start the background decode's process (seconds) unless it is running."""
+        if self._decode_process is None:
+            self._decode_process = DecodeProcess(self)
 
     @property
     def in_autoencoder_phase(self) -> bool:
