@@ -7,8 +7,13 @@ processors. Starts ``piper-emulator --physics --scene=<scene>`` on private udp_m
 twin's world state), runs ``lerobot-rollout --strategy.type=base --robot.cameras=<piper_twin views>`` against it once
 per variant (synchronous decode; the background decode, in its own process, started ``--lead`` ticks before the
 queue runs dry), and measures the loop period from the
-kernel receive times of the joint commands on the bus, as benchmarks/rollout_loop_period.py does for the state
-policy on the kinematic firmware. A period over 1.1 control periods (36.7 ms at 30 Hz) is a missed tick.
+kernel receive times of the joint commands on the bus (``--clock bus``, a recorder on the bus in this process, as
+benchmarks/rollout_loop_period.py does for the state policy on the kinematic firmware; the loop's own send times are
+printed beside them as a cross-check) or from the times the loop's ``send_action`` returned (``--clock loop``, no
+recorder: a recorder reading every frame on the bus takes CPU from the two cores the loop runs on, which a real arm's
+computer does not spend). A period over 1.1 control periods (36.7 ms at 30 Hz) is a missed tick. The CPU time of
+the emulator, the rollout (with its decode process) and the recorder is printed as a share of one core, with the
+share of the machine's time the hypervisor gave to other guests (steal, /proc/stat) meanwhile.
 
 ``lerobot-rollout`` runs as itself (LeRobot's ``main``) behind a few lines that time each camera read of the loop
 (``read_latest``: the twin's camera renders in the rollout process on its own capture thread, as a real camera
@@ -20,6 +25,7 @@ decode). Run:
         [--cameras front[,wrist]] [--scene press_button|cube_in_bowl] [--weights float32|int8]
         [--variants sync,background] [--nice N]   (N < 0: the control loop above the emulator, as root)
         [--fifo P]   (the rollout under SCHED_FIFO priority P, as root)
+        [--clock bus|loop]   (the periods from the bus's receive times, or the loop's own send times)
         [--raw FILE]   (the command times and every timed call, as JSON)
 """
 
@@ -28,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -99,17 +106,36 @@ def late_by_place(times: np.ndarray, start: float, select_calls: list, steps: in
     return counts
 
 
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a live process has used, from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_ticks() -> tuple[int, int]:
+    """All CPUs' ticks since boot, and of them those stolen by the hypervisor (/proc/stat)."""
+    with open("/proc/stat") as f:
+        fields = [int(v) for v in f.readline().split()[1:]]
+    return sum(fields[:8]), fields[7]
+
+
+def send_times(calls: list) -> np.ndarray:
+    """When each of the loop's ``send_action`` calls returned (wall s): its commands are on the bus by then."""
+    return np.array([wall + ms / 1000 for wall, ms in calls])
+
+
 def loop_run(
     checkpoint: Path, home: Path, args: argparse.Namespace, side: int, raw: Path | None
-) -> tuple[np.ndarray, dict, list[int]]:
+) -> tuple[np.ndarray, dict, list[int], dict]:
     """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, the timed calls
-    after the same instant (name -> ms), and the late periods by their tick's place in its skill."""
+    after the same instant (name -> ms), the late periods by their tick's place in its skill, and the CPU used
+    during the rollout per process (share of one core)."""
     group, port = unique_udp_channel()
     state_group, state_port = unique_udp_channel()
     physics = ["--physics", f"--scene={args.scene}", "--scene-seed=3"]
     twin = start_emulator(group, port, *physics, f"--state-group={state_group}", f"--state-port={state_port}")
     cams = ", ".join(f"{c}: {CAMERA % (c, side, side, state_group, state_port)}" for c in args.cameras)
-    recorder = ChannelRecorder(group, port)
+    recorder = ChannelRecorder(group, port) if args.clock == "bus" else None
     timings = home / "timings.json"
     rollout = [
         "--strategy.type=base",
@@ -128,6 +154,9 @@ def loop_run(
     command = ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout]
     if args.fifo:  # real-time scheduling (as root): every thread of the rollout above every ordinary process
         command = ["chrt", "--fifo", str(args.fifo), *command]
+    cpu_before = (cpu_s(twin.process.pid), resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(0))
+    ticks_before = cpu_ticks()
+    begin = time.monotonic()
     try:
         out = subprocess.run(
             command,
@@ -137,20 +166,36 @@ def loop_run(
             env=cli_env(home) | {TIMINGS_ENV: str(timings)},
             cwd=home,
         )
+        wall = time.monotonic() - begin
+        after = (cpu_s(twin.process.pid), resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(0))
+        ticks_after = cpu_ticks()
+        cpu = {
+            "emulator": (after[0] - cpu_before[0]) / wall,
+            "rollout": sum(getattr(after[1], f) - getattr(cpu_before[1], f) for f in ("ru_utime", "ru_stime")) / wall,
+        }
+        if recorder is not None:  # the benchmark's main thread only waits meanwhile: this is the recorder's
+            cpu["recorder"] = sum(getattr(after[2], f) - getattr(cpu_before[2], f) for f in ("ru_utime", "ru_stime"))
+            cpu["recorder"] /= wall
+        # A VM's steal: time the host ran someone else on our cores (the loop cannot be on time then).
+        cpu["stolen by the host"] = (ticks_after[1] - ticks_before[1]) / (ticks_after[0] - ticks_before[0])
     finally:
-        recorder.stop()
+        if recorder is not None:
+            recorder.stop()
         twin.stop()
     if out.returncode != 0:
         raise RuntimeError(explain(out))
-    times = np.array([c.time_s for c in recorder.commands.joints])
-    start = times[0] + args.skip  # the first commands: connection, the first decode
     timed = json.loads(timings.read_text()) if timings.exists() else {}
+    sent = send_times(timed.get("send_action", []))
+    times = np.array([c.time_s for c in recorder.commands.joints]) if recorder is not None else sent
+    start = times[0] + args.skip  # the first commands: connection, the first decode
     calls = {name: np.array([ms for wall, ms in calls if wall >= start]) for name, calls in timed.items()}
+    if recorder is not None:  # the cross-check: the same periods from the loop's own clock
+        calls["period from send_action returns"] = np.diff(sent[sent >= start]) * 1000
     if raw is not None:
-        raw.write_text(json.dumps({"command_receive_s": times.tolist(), "calls": timed}))
+        raw.write_text(json.dumps({"command_time_s": times.tolist(), "clock": args.clock, "calls": timed}))
     steps = json.loads((checkpoint / "config.json").read_text())["n_action_steps"]
     late = late_by_place(times, start, timed.get("select_action", []), steps, 1.1 * 1000 / args.fps)
-    return np.diff(times[times >= start]) * 1000, calls, late
+    return np.diff(times[times >= start]) * 1000, calls, late, cpu
 
 
 def main() -> None:
@@ -166,6 +211,9 @@ def main() -> None:
     parser.add_argument("--nice", type=int, default=0, help="the rollout's niceness (negative: above the emulator's)")
     parser.add_argument("--fifo", type=int, default=0, metavar="P", help="the rollout at SCHED_FIFO P, 1-99 (root)")
     parser.add_argument("--variants", default="sync,background", help="comma-separated: sync, background")
+    parser.add_argument(
+        "--clock", default="bus", choices=("bus", "loop"), help="periods from the bus's receive times or the loop's"
+    )
     parser.add_argument("--raw", type=Path, help="write each variant's command times and timed calls to FILE.<variant>")
     args = parser.parse_args()
     unknown = set(args.variants.split(",")) - set(VARIANTS)
@@ -195,14 +243,22 @@ def main() -> None:
                 home / f"policy_{variant}", lead, args.weights, settings, tuple(args.cameras), side, TASK
             )
             raw = None if args.raw is None else args.raw.with_name(f"{args.raw.name}.{variant}")
-            periods, calls, late = loop_run(checkpoint, home, args, side, raw)
-            report(f"{name} ({args.weights})", periods, limit_ms)
+            periods, calls, late, cpu = loop_run(checkpoint, home, args, side, raw)
+            clock = "the bus's receive times" if args.clock == "bus" else "the loop's send_action returns"
+            report(f"{name} ({args.weights}), periods from {clock}", periods, limit_ms)
+            stolen = cpu.pop("stolen by the host")
+            print(
+                "CPU during the rollout (share of one core): "
+                + ", ".join(f"{k} {v:.2f}" for k, v in cpu.items())
+                + f"; stolen by the hypervisor: {100 * stolen:.1f} % of all cores' time"
+            )
             print(f"late periods by the tick's place in its skill (0: refill): {late}")
             for call, ms in sorted(calls.items()):
                 if len(ms):
                     print(
                         f"{call}: {len(ms)} calls, median {np.median(ms):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms,"
                         f" max {ms.max():.2f} ms"
+                        + (f", over {limit_ms:.1f} ms: {(ms > limit_ms).sum()}" if "period" in call else "")
                     )
             with open("/proc/loadavg") as f:
                 print(f"# load average after: {f.read().strip()}; variant wall time {time.monotonic() - begin:.0f} s")
