@@ -76,6 +76,16 @@ PiperTwinCamera.read_latest = timed(lambda cam: "camera " + cam.config.view, Pip
 CSOPolicy.select_action = timed(lambda policy: "select_action", CSOPolicy.select_action)
 PiperFollower.get_observation = timed(lambda robot: "get_observation", PiperFollower.get_observation)
 PiperFollower.send_action = timed(lambda robot: "send_action", PiperFollower.send_action)
+import gc
+collecting = {{}}
+def collection(phase, info):  # the garbage collector holds the GIL whatever thread it runs on
+    if phase == "start":
+        collecting["t"] = (time.time(), time.perf_counter())
+    elif "t" in collecting:
+        wall, start = collecting.pop("t")
+        name = "gc generation %d" % info["generation"]
+        timings.setdefault(name, []).append((wall, (time.perf_counter() - start) * 1e3))
+gc.callbacks.append(collection)
 def sleep(seconds, _sleep=base.precise_sleep):
     wall, start = time.time(), time.perf_counter()
     _sleep(seconds)
@@ -126,10 +136,11 @@ def send_times(calls: list) -> np.ndarray:
 
 def loop_run(
     checkpoint: Path, home: Path, args: argparse.Namespace, side: int, raw: Path | None
-) -> tuple[np.ndarray, dict, list[int], dict]:
+) -> tuple[np.ndarray, dict, list[int], dict, int]:
     """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, the timed calls
-    after the same instant (name -> ms), the late periods by their tick's place in its skill, and the CPU used
-    during the rollout per process (share of one core)."""
+    after the same instant (name -> ms), the late periods by their tick's place in its skill, the CPU used
+    during the rollout per process (share of one core) and the number of late periods in which the garbage
+    collector ran a generation 1 or 2 collection."""
     group, port = unique_udp_channel()
     state_group, state_port = unique_udp_channel()
     physics = ["--physics", f"--scene={args.scene}", "--scene-seed=3"]
@@ -194,8 +205,26 @@ def loop_run(
     if raw is not None:
         raw.write_text(json.dumps({"command_time_s": times.tolist(), "clock": args.clock, "calls": timed}))
     steps = json.loads((checkpoint / "config.json").read_text())["n_action_steps"]
-    late = late_by_place(times, start, timed.get("select_action", []), steps, 1.1 * 1000 / args.fps)
-    return np.diff(times[times >= start]) * 1000, calls, late, cpu
+    limit_ms = 1.1 * 1000 / args.fps
+    late = late_by_place(times, start, timed.get("select_action", []), steps, limit_ms)
+    collections = [
+        wall
+        for name, calls in timed.items()
+        if name != "gc generation 0" and name.startswith("gc ")
+        for wall, _ in calls
+    ]
+    with_gc = late_with(times, start, collections, limit_ms)
+    return np.diff(times[times >= start]) * 1000, calls, late, cpu, with_gc
+
+
+def late_with(times: np.ndarray, start: float, events: list[float], limit_ms: float) -> int:
+    """Late periods (over ``limit_ms``) after ``start`` during which one of ``events`` (wall s) began."""
+    events = np.sort(np.array(events))
+    count = 0
+    for before, command in zip(times[:-1], times[1:], strict=True):
+        if command >= start and (command - before) * 1000 > limit_ms:
+            count += int(np.searchsorted(events, command) > np.searchsorted(events, before))
+    return count
 
 
 def main() -> None:
@@ -243,7 +272,7 @@ def main() -> None:
                 home / f"policy_{variant}", lead, args.weights, settings, tuple(args.cameras), side, TASK
             )
             raw = None if args.raw is None else args.raw.with_name(f"{args.raw.name}.{variant}")
-            periods, calls, late, cpu = loop_run(checkpoint, home, args, side, raw)
+            periods, calls, late, cpu, with_gc = loop_run(checkpoint, home, args, side, raw)
             clock = "the bus's receive times" if args.clock == "bus" else "the loop's send_action returns"
             report(f"{name} ({args.weights}), periods from {clock}", periods, limit_ms)
             stolen = cpu.pop("stolen by the host")
@@ -252,7 +281,8 @@ def main() -> None:
                 + ", ".join(f"{k} {v:.2f}" for k, v in cpu.items())
                 + f"; stolen by the hypervisor: {100 * stolen:.1f} % of all cores' time"
             )
-            print(f"late periods by the tick's place in its skill (0: refill): {late}")
+            print(f"late periods by the tick's place in its skill (0: refill): {late}; with a collection of the")
+            print(f"garbage collector's generation 1 or 2 in them: {with_gc}")
             for call, ms in sorted(calls.items()):
                 if len(ms):
                     print(
