@@ -55,7 +55,8 @@ TASK = "press the button"
 CAMERA = "{type: piper_twin, view: %s, width: %d, height: %d, group: %s, port: %d, max_age_s: 1.0}"
 TIMINGS_ENV = "TWIN_LOOP_TIMINGS"
 VARIANTS = ("sync", "background")
-# lerobot-rollout's console script, with each camera read and each select_action timed: (wall start s, ms).
+# lerobot-rollout's console script, with each camera read, select_action, get/send_action, sleep and garbage
+# collection timed: (wall start s, ms).
 ROLLOUT = f"""
 import atexit, json, os, sys, time
 from lerobot_robot_piper.piper_twin_camera import PiperTwinCamera
