@@ -41,6 +41,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import yaml
@@ -117,17 +118,17 @@ def late_by_place(times: np.ndarray, start: float, select_calls: list, steps: in
     return counts
 
 
-def cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) a live process has used, from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def cpu_ticks() -> tuple[int, int]:
-    """All CPUs' ticks since boot, and of them those stolen by the hypervisor (/proc/stat)."""
+def cpu_now(emulator_pid: int) -> np.ndarray:
+    """CPU seconds (user + system) used so far by the emulator (a live process, /proc), by the children that ended
+    (the rollout and its decode process) and by this process (the recorder's thread), then all CPUs' ticks since
+    boot and, of them, those stolen by the hypervisor (/proc/stat)."""
+    fields = Path(f"/proc/{emulator_pid}/stat").read_text().rsplit(")", 1)[1].split()
+    emulator = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    children, own = resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(resource.RUSAGE_SELF)
     with open("/proc/stat") as f:
-        fields = [int(v) for v in f.readline().split()[1:]]
-    return sum(fields[:8]), fields[7]
+        ticks = [int(v) for v in f.readline().split()[1:]]
+    used = [emulator, children.ru_utime + children.ru_stime, own.ru_utime + own.ru_stime]
+    return np.array([*used, sum(ticks[:8]), ticks[7]], dtype=float)
 
 
 def send_times(calls: list) -> np.ndarray:
@@ -135,13 +136,19 @@ def send_times(calls: list) -> np.ndarray:
     return np.array([wall + ms / 1000 for wall, ms in calls])
 
 
-def loop_run(
-    checkpoint: Path, home: Path, args: argparse.Namespace, side: int, raw: Path | None
-) -> tuple[np.ndarray, dict, list[int], dict, int]:
-    """lerobot-rollout against a fresh twin: periods between joint commands (ms) after ``skip`` s, the timed calls
-    after the same instant (name -> ms), the late periods by their tick's place in its skill, the CPU used
-    during the rollout per process (share of one core) and the number of late periods in which the garbage
-    collector ran a generation 1 or 2 collection."""
+class LoopRun(NamedTuple):
+    """What one rollout against the twin measured (after the first ``skip`` seconds)."""
+
+    periods_ms: np.ndarray  # between joint commands
+    calls: dict  # timed call name -> ms
+    late_by_place: list[int]  # late periods by their tick's place in its skill
+    cpu: dict[str, float]  # process -> share of one core during the rollout
+    stolen: float  # the hypervisor's steal meanwhile, share of all cores' time
+    late_with_gc: int  # late periods in which a generation 1 or 2 collection began
+
+
+def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int, raw: Path | None) -> LoopRun:
+    """lerobot-rollout against a fresh twin, measured."""
     group, port = unique_udp_channel()
     state_group, state_port = unique_udp_channel()
     physics = ["--physics", f"--scene={args.scene}", "--scene-seed=3"]
@@ -166,9 +173,7 @@ def loop_run(
     command = ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout]
     if args.fifo:  # real-time scheduling (as root): every thread of the rollout above every ordinary process
         command = ["chrt", "--fifo", str(args.fifo), *command]
-    cpu_before = (cpu_s(twin.process.pid), resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(0))
-    ticks_before = cpu_ticks()
-    begin = time.monotonic()
+    before, begin = cpu_now(twin.process.pid), time.monotonic()
     try:
         out = subprocess.run(
             command,
@@ -178,18 +183,11 @@ def loop_run(
             env=cli_env(home) | {TIMINGS_ENV: str(timings)},
             cwd=home,
         )
-        wall = time.monotonic() - begin
-        after = (cpu_s(twin.process.pid), resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(0))
-        ticks_after = cpu_ticks()
-        cpu = {
-            "emulator": (after[0] - cpu_before[0]) / wall,
-            "rollout": sum(getattr(after[1], f) - getattr(cpu_before[1], f) for f in ("ru_utime", "ru_stime")) / wall,
-        }
-        if recorder is not None:  # the benchmark's main thread only waits meanwhile: this is the recorder's
-            cpu["recorder"] = sum(getattr(after[2], f) - getattr(cpu_before[2], f) for f in ("ru_utime", "ru_stime"))
-            cpu["recorder"] /= wall
-        # A VM's steal: time the host ran someone else on our cores (the loop cannot be on time then).
-        cpu["stolen by the host"] = (ticks_after[1] - ticks_before[1]) / (ticks_after[0] - ticks_before[0])
+        used = cpu_now(twin.process.pid) - before
+        share = used[:3] / (time.monotonic() - begin)
+        # The benchmark's main thread only waits meanwhile: this process's CPU is the recorder's.
+        cpu = dict(zip(("emulator", "rollout", "recorder"), share[: 3 if recorder is not None else 2], strict=False))
+        stolen = used[4] / used[3]  # a VM's steal: the host ran someone else on our cores (no loop is on time then)
     finally:
         if recorder is not None:
             recorder.stop()
@@ -214,8 +212,8 @@ def loop_run(
         if name != "gc generation 0" and name.startswith("gc ")
         for wall, _ in calls
     ]
-    with_gc = late_with(times, start, collections, limit_ms)
-    return np.diff(times[times >= start]) * 1000, calls, late, cpu, with_gc
+    periods = np.diff(times[times >= start]) * 1000
+    return LoopRun(periods, calls, late, cpu, stolen, late_with(times, start, collections, limit_ms))
 
 
 def late_with(times: np.ndarray, start: float, events: list[float], limit_ms: float) -> int:
@@ -273,18 +271,17 @@ def main() -> None:
                 home / f"policy_{variant}", lead, args.weights, settings, tuple(args.cameras), side, TASK
             )
             raw = None if args.raw is None else args.raw.with_name(f"{args.raw.name}.{variant}")
-            periods, calls, late, cpu, with_gc = loop_run(checkpoint, home, args, side, raw)
+            run = loop_run(checkpoint, home, args, side, raw)
             clock = "the bus's receive times" if args.clock == "bus" else "the loop's send_action returns"
-            report(f"{name} ({args.weights}), periods from {clock}", periods, limit_ms)
-            stolen = cpu.pop("stolen by the host")
+            report(f"{name} ({args.weights}), periods from {clock}", run.periods_ms, limit_ms)
             print(
                 "CPU during the rollout (share of one core): "
-                + ", ".join(f"{k} {v:.2f}" for k, v in cpu.items())
-                + f"; stolen by the hypervisor: {100 * stolen:.1f} % of all cores' time"
+                + ", ".join(f"{k} {v:.2f}" for k, v in run.cpu.items())
+                + f"; stolen by the hypervisor: {100 * run.stolen:.1f} % of all cores' time"
             )
-            print(f"late periods by the tick's place in its skill (0: refill): {late}; with a collection of the")
-            print(f"garbage collector's generation 1 or 2 in them: {with_gc}")
-            for call, ms in sorted(calls.items()):
+            print(f"late periods by the tick's place in its skill (0: refill): {run.late_by_place}; with a collection")
+            print(f"of the garbage collector's generation 1 or 2 in them: {run.late_with_gc}")
+            for call, ms in sorted(run.calls.items()):
                 if len(ms):
                     print(
                         f"{call}: {len(ms)} calls, median {np.median(ms):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms,"
