@@ -1,0 +1,52 @@
+"""``benchmarks/results_page.py``: docs/results.md is what the committed results files give, and a changed number in
+a results file makes the check fail (the page cannot drift from the files)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "results_page.py"
+
+
+def page(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=ROOT, timeout=60)
+
+
+def test_the_committed_page_is_what_the_results_files_give():
+    run = page("--check")
+    assert run.returncode == 0, run.stderr
+    lines = (ROOT / "docs" / "results.md").read_text().splitlines()
+    cells = [cell for line in lines if line.startswith("|") for cell in line.strip("|").split("|")]
+    assert len(lines) <= 150 and max(len(cell.strip()) for cell in cells) <= 200  # the page's size goals
+
+
+def test_a_changed_result_fails_the_check_and_regenerates_the_row(tmp_path):
+    results = tmp_path / "results"
+    shutil.copytree(ROOT / "benchmarks" / "results", results, ignore=shutil.ignore_patterns("*.png"))
+    committed = (ROOT / "docs" / "results.md").read_text()
+    path = results / "mw_proxy.json"
+    data = json.loads(path.read_text())
+    data["cso_minus_il"] = {"mean": 0.1, "ci95": [-0.02, 0.22], "seeds": data["cso_minus_il"]["seeds"]}
+    path.write_text(json.dumps(data))
+
+    run = page("--check", f"--results_dir={results}")
+    assert run.returncode == 1
+    assert run.stderr.strip().splitlines() == [
+        f"error: {ROOT / 'docs' / 'results.md'} differs from the results files; run python benchmarks/results_page.py"
+    ]
+    out = tmp_path / "results.md"
+    assert page(f"--results_dir={results}", f"--page={out}").returncode == 0
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| MW-proxy: CSO − IL ≥ +15"))
+    assert "| +10.0 [−2.0, +22.0], 5 seeds | **missed** on the mean;" in row
+    assert "| +17.8 [+10.2, +25.4], 5 seeds | **met** on the mean;" in committed
+    assert (ROOT / "docs" / "results.md").read_text() == committed  # the check wrote nothing
+
+
+def test_a_missing_results_file_is_one_error_line(tmp_path):
+    (tmp_path / "results").mkdir()
+    run = page("--check", f"--results_dir={tmp_path / 'results'}")
+    assert run.returncode != 0
+    assert run.stderr.strip().splitlines()[-1].startswith("error: no results file ")
