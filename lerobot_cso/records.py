@@ -4,7 +4,8 @@ A record (JSON) holds the spec a stage's output was made with, whether it comple
 :func:`run_recorded` reads it before the stage does anything: the same spec and a complete output is skipped;
 a spec that only grows in one of the stage's ``grows`` keys continues; any other difference over a complete output or
 one holding work (:func:`holds_work`) is refused with one line naming every changed setting (``redo_on_change``
-stages are simply redone).
+stages are simply redone). So is work without the stage's own record (:func:`check_own_record`): its settings are
+unknown.
 
 The pipeline keeps one record per stage in ``<output_dir>/stages/``, its specs naming the upstream stage's run;
 a stage run by its own command (``lerobot-cso rsft|spo``, :func:`run_alone`) keeps its record in its output dir,
@@ -44,6 +45,25 @@ def holds_work(output: Path, record_path: Path) -> bool:
     return any(p.is_file() and p not in bookkeeping for p in output.rglob("*"))
 
 
+def check_own_record(stage: Stage, record_path: Path, record: dict[str, Any] | None, elsewhere: str) -> None:
+    """Refuse an output that holds work but not this stage's own record (made by the pipeline when run alone, by a
+    stage's own command inside a pipeline, or by an older version): nothing says which settings, inputs or policy
+    made it, so it is never continued, skipped or reported, unless the stage proves its origin from the work itself
+    (``proven_origin()``: an R-SFT collection whose journal holds this run's collection settings)."""
+    output = stage.output()
+    alone = output / ALONE_RECORD
+    if alone != record_path and alone.is_file():
+        raise UsageError(
+            f"{output} holds the work of a stage run by its own command ({alone}), not this run's; {elsewhere}"
+        )
+    proven = getattr(stage, "proven_origin", lambda: False)
+    if record is None and holds_work(output, record_path) and not proven():
+        raise UsageError(
+            f"{output} holds work but no record of the settings, inputs and policy it was made with ({record_path} "
+            f"is missing: another command or an older version made it), so it cannot be continued; {elsewhere}"
+        )
+
+
 def run_recorded(
     stage: Stage, record_path: Path, spec: dict[str, Any], label: str, elsewhere: str, write: bool = True
 ) -> tuple[Any, float]:
@@ -51,6 +71,8 @@ def run_recorded(
     seconds (the recorded ones when skipped). ``label`` prefixes the progress lines; ``elsewhere`` ends the
     refusal (what to delete or choose instead). Only a process with ``write`` writes the record."""
     output, record = stage.output(), read_json(record_path)
+    if not stage.redo_on_change:
+        check_own_record(stage, record_path, record, elsewhere)
     current = without_added_settings(spec)
     recorded = None if record is None else without_added_settings(record["spec"])
     same = recorded == current

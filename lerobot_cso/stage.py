@@ -98,6 +98,11 @@ class CheckpointStage:
     def complete(self) -> bool:
         return (self.policy() / "config.json").is_file()
 
+    def proven_origin(self) -> bool:
+        """Whether work found in the output without the stage's record is provably this stage's own (see
+        :func:`~lerobot_cso.records.check_own_record`); none is, unless a stage says how."""
+        return False
+
 
 def settings_spec(config: Any, exclude: tuple[str, ...] = ()) -> dict[str, Any]:
     """A config dataclass (or a dict of settings) as plain JSON data, without the fields in ``exclude``."""

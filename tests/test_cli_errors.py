@@ -35,7 +35,7 @@ from lerobot_cso.demos import DemosConfig
 from lerobot_cso.durable import EpisodeJournal, output_lock
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.evaluation import EvalConfig
-from lerobot_cso.pipeline import Pipeline, PipelineConfig
+from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.policy.configuration_cso import CSOConfig
 from lerobot_cso.sampling import Sampling
 from lerobot_cso.worlds.metaworld.tasks import task_description
@@ -217,6 +217,40 @@ def test_standalone_rsft_stopped_at_its_state_budget_continues_into_a_larger_one
     assert (out / "pretrained_model" / "config.json").is_file()
     code, _, err = run_cli([*rsft, "--max_states_per_task=4"], capsys)
     assert code == 2 and "(rsft.max_states_per_task: 8 → 4)" in err
+
+
+def test_work_without_its_own_record_is_never_adopted(two_policies, tmp_path, capsys, scripted_rollouts):
+    """Issue 58, item 1: an SPO or R-SFT output without its own record (made by the pipeline, or before the record
+    existed) was continued or skipped under any policy and settings, and a pipeline adopted a standalone command's
+    SPO checkpoint as its CSO result. Only an R-SFT collection whose journal holds this run's settings is adopted."""
+    first, other = two_policies
+    out = tmp_path / "run" / "spo"
+    spo = ["spo", f"--tasks={','.join(TASKS)}", f"--output_dir={out}", "--groups_per_iteration=2", "--epochs=1"]
+    spo += ["--minibatch_trajectories=4", "--lr=0.001", "--group_size=4", "--iterations=1"]
+    assert run_cli([*spo, f"--policy.path={first}"], capsys)[0] == 0
+    cfg = SPOConfig(tasks=",".join(TASKS), output_dir=out, policy=policy_config(first), iterations=1)
+    with pytest.raises(UsageError, match=rf"^{out} holds the work of a stage run by its own command \({out}/stage"):
+        records.run_recorded(SPOStage(cfg), tmp_path / "run" / "stages" / "spo.json", {}, "[pipeline] spo", "")
+    (out / "stage.json").unlink()  # as the pipeline, or the code before the record, leaves it
+    code, _, err = run_cli([*spo, f"--policy.path={other}", "--objective=token"], capsys)
+    assert code == 2 and err.startswith(f"error: {out} holds work but no record of the settings, inputs and policy")
+    assert f"({out / 'stage.json'} is missing" in err
+    rsft = ["rsft", f"--tasks={','.join(TASKS)}", f"--policy.path={first}", "--successes_per_task=1", "--n_strikes=4"]
+    rsft += ["--batch_size=8", "--lr=0.001", "--min_lr=0.0001"]
+    made = tmp_path / "made"
+    assert run_cli([*rsft, f"--output_dir={made}", "--epochs=1"], capsys)[0] == 0
+    (made / "stage.json").unlink()
+    code, _, err = run_cli([*rsft, f"--output_dir={made}", "--epochs=1"], capsys)
+    assert code == 2 and err.startswith(f"error: {made} holds work but no record"), err
+    reused = tmp_path / "reused"  # its collection alone, to be fine-tuned anew (benchmarks/twin_table5.py --reuse)
+    for name in ("journal", "buffer", "collection.json"):
+        (shutil.copytree if (made / name).is_dir() else shutil.copy)(made / name, reused / name)
+    code, stdout, _ = run_cli([*rsft, f"--output_dir={reused}", "--epochs=2"], capsys)
+    assert code == 0 and (reused / "pretrained_model" / "config.json").is_file(), stdout
+    shutil.rmtree(reused / "pretrained_model")
+    (reused / "stage.json").unlink()
+    code, _, err = run_cli([*rsft, f"--output_dir={reused}", "--epochs=2", "--n_strikes=5"], capsys)
+    assert code == 2 and err.startswith(f"error: {reused} holds work but no record"), err
 
 
 def test_a_fresh_training_run_too_short_to_reach_the_prior_is_warned_about(caplog):

@@ -555,6 +555,16 @@ class RSFTStage(CheckpointStage):
     def run(self) -> dict[str, Any]:
         return run_rsft(self.cfg, self.make_engine)
 
+    def proven_origin(self) -> bool:
+        """An output holding only a collection (its journal, buffer and report: no fine-tune yet) whose journal was
+        made with this run's collection settings and policy: the journal checks its own settings, so a collection
+        copied to be fine-tuned anew (``benchmarks/twin_table5.py --reuse``) is adopted."""
+        out = self.cfg.output_dir
+        collection = {"journal", "robot_journal", "buffer", "collection.json"}
+        return all(p.name in collection for p in out.iterdir()) and read_json(out / "journal" / "spec.json") == (
+            self.cfg.spec()
+        )
+
 
 @parser.wrap()
 def rsft_main(cfg: RSFTConfig) -> None:
