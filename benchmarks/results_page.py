@@ -1,6 +1,6 @@
 """docs/results.md from the committed results files: one row per benchmark goal, every number read from a file.
 
-    python benchmarks/results_page.py            # writes docs/results.md
+    python benchmarks/results_page.py            # writes docs/results.md and docs/img/results.png
     python benchmarks/results_page.py --check    # exit 1 when docs/results.md is not what the files give
 
 Success rates are % on held-out initial states. Over training seeds, ± is the standard deviation across seeds and
@@ -220,6 +220,49 @@ LOG_ONLY = [
 ]
 
 
+# The README's plot: held-out IL, R-SFT and CSO per benchmark, (label, file, task on the twin or None)
+PLOT = [
+    ("MetaWorld state,\ndemo config (5 seeds)", "mw_proxy_demo.json", None),
+    ("MetaWorld state,\nMW-proxy (5 seeds)", "mw_proxy.json", None),
+    ("MetaWorld camera\n(4 seeds)", "mw_vision.json", None),
+    ("PiPER twin, Press\nButton (100 trials)", "twin_table5_dm_press_t100.json", "press_button"),
+    ("PiPER twin, Cube in\nBowl (100 trials)", "twin_table5_regrasp_cube.json", "cube_in_bowl"),
+]
+
+
+def plot(results_dir: Path, path: Path) -> None:
+    """Held-out success of IL, R-SFT and CSO per benchmark: ± the std across training seeds on MetaWorld, one binomial
+    standard error on the twin's trials."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    for i, method in enumerate(("il", "rsft", "cso")):
+        means, errs = [], []
+        for _, file, task in PLOT:
+            r = json.loads((results_dir / file).read_text())
+            if task is None:
+                means.append(100 * r["methods"][method]["mean"])
+                errs.append(100 * r["methods"][method]["std"])
+            else:
+                p, n = r["tasks"][task]["sr"][method], r["tasks"][task]["paired"]["cso_minus_il"]["trials"]
+                means.append(100 * p)
+                errs.append(100 * (p * (1 - p) / n) ** 0.5)
+        x = [j + (i - 1) * 0.27 for j in range(len(PLOT))]
+        ax.bar(x, means, 0.27, yerr=errs, capsize=3, label=name(method))
+    ax.set_xticks(range(len(PLOT)), [label for label, _, _ in PLOT], fontsize=8)
+    ax.set_ylabel("held-out success (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8, ncols=3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def anchor(file: str) -> str:
     return file.replace(".", "")
 
@@ -281,6 +324,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--results_dir", type=Path, default=ROOT / "benchmarks" / "results")
     parser.add_argument("--page", type=Path, default=ROOT / "docs" / "results.md")
+    parser.add_argument("--plot", type=Path, default=ROOT / "docs" / "img" / "results.png")
     parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from what the files give")
     args = parser.parse_args()
     if not args.results_dir.is_dir():
@@ -295,7 +339,8 @@ def main() -> int:
             return 1
         return 0
     args.page.write_text(page)
-    print(f"[results_page] wrote {args.page}")
+    plot(args.results_dir, args.plot)
+    print(f"[results_page] wrote {args.page} and {args.plot}")
     return 0
 
 
