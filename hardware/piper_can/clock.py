@@ -1,7 +1,8 @@
 """The clocks the PiPER driver runs on: the system's, or a simulated one that tests step exactly.
 
-A clock gives the wall time (``time``: frames are stamped on it), a monotonic time for deadlines and
-a way to wait (``sleep``). ``SystemClock`` is the process's own; with it the link reads the bus on a
+A clock gives the wall time (``time``: the kernel stamps received frames on it, and it can step, e.g. an
+NTP or VM resync), a monotonic time (deadlines, and the ages of frames: the link re-bases every stamp
+onto it) and a way to wait (``sleep``). ``SystemClock`` is the process's own; with it the link reads the bus on a
 thread. ``SimulatedClock`` moves only inside ``sleep``, running every callback that falls due on the
 way (an emulated arm's ``step``), so a test drives firmware, bus and driver in one thread with exact
 times; with it the link reads the bus whenever it is asked for the state (no thread).
@@ -24,11 +25,11 @@ class Clock(Protocol):
         ...
 
     def time(self) -> float:
-        """Wall-clock seconds (the epoch frames are stamped with)."""
+        """Wall-clock seconds (the epoch the kernel stamps frames with; it may step either way)."""
         ...
 
     def monotonic(self) -> float:
-        """Seconds that never go back (for deadlines)."""
+        """Seconds that never go back (deadlines, and every frame's age)."""
         ...
 
     def sleep(self, seconds: float) -> None:
@@ -68,17 +69,23 @@ class _Timer:
 
 class SimulatedClock:
     """Time that moves only in ``sleep``: every ``every`` callback due by then runs, in time order
-    (ties in registration order), with the clock set to its due time. One thread sleeps at a time."""
+    (ties in registration order), with the clock set to its due time. One thread sleeps at a time.
+    ``step_wall`` steps the wall clock alone, as an NTP step does (``monotonic`` goes on)."""
 
     real_time = False
 
     def __init__(self, start: float = 1_000.0) -> None:
         # Far from today's epoch, so a frame stamped on the system clock cannot pass for a fresh one.
         self._now = start
+        self._wall_offset = 0.0
         self._timers: list[_Timer] = []
 
     def time(self) -> float:
-        return self._now
+        return self._now + self._wall_offset
+
+    def step_wall(self, seconds: float) -> None:
+        """Step the wall clock by ``seconds`` (negative: back), leaving the monotonic time alone."""
+        self._wall_offset += seconds
 
     def monotonic(self) -> float:
         return self._now

@@ -93,6 +93,8 @@ FROZEN_MIN_MOVE_RAD = 0.01
 LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
 # A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
 LIMIT_MISMATCH_RAD = math.radians(0.05)
+# An enable() that another host's reset or high-follow request interrupts starts over at most this often.
+MAX_ENABLE_RESTARTS = 5
 MOTION_MODES = ("position", "high_follow")
 # A watchdog looser than this is no watchdog (200 feedback periods; the emulator over UDP needs 0.1-0.3 s).
 MAX_FEEDBACK_TIMEOUT_S = 1.0
@@ -300,8 +302,15 @@ class PiperDriver:
         self._reset_sent_at: float | None = None
         self._enabled_before_reset = False
         self._may_be_high_follow = False
-        # Foreign resets and high-follow requests newer than this latch motion (set when an enable begins).
+        # All on the monotonic clock the link stamps frames on. When the running (or last) enable() began.
         self._session_start = 0.0
+        # Another host's resets stamped up to this were waited out; a newer one restarts an enable in
+        # flight, or latches motion after it.
+        self._resets_waited = 0.0
+        # Another host's high-follow requests (0x151 … AD) after this need the exit (set by enable and reset).
+        self._high_follow_since = 0.0
+        # Another host's mode changes (0x151) after our confirmed 0x151 latch motion unless they are ours.
+        self._mode_mark = 0.0
         self._reported_faults: tuple[Fault, ...] = ()
         # While commanding moves: the joint angles last seen, the stamp they were first seen with, and the
         # stamp of the last command that asked for a move.
@@ -326,7 +335,8 @@ class PiperDriver:
         self.link.open(first, self.config.connect_timeout_s)
         self.limits = self.config.limits
         self._interlock.close(NOT_ENABLED)
-        self._session_start = self.clock.time()
+        now = self.clock.monotonic()
+        self._session_start = self._resets_waited = self._high_follow_since = self._mode_mark = now
         if listen_only:
             return
         try:
@@ -346,7 +356,7 @@ class PiperDriver:
 
     def _check_collision_protection(self) -> None:
         """Ask for the collision-protection levels (0x477 02 -> 0x47B); level 0 (off) warns or refuses."""
-        asked_at = self.clock.time()
+        asked_at = self.clock.monotonic()
         self.link.send(encode(ParamQuery(PARAM_QUERY_COLLISION)))
 
         def answered(s: ArmState) -> bool:
@@ -440,15 +450,17 @@ class PiperDriver:
 
     def disconnect(self) -> None:
         """Apply the disconnect policy (best effort), then release the bus. From the call on, other
-        threads' commands are refused (only the rest walk moves the arm)."""
+        threads' commands are refused (only the rest walk moves the arm); an e-stop requested meanwhile
+        stops the walk and keeps the rest policy's disable frame off the bus (the arm stays damped)."""
         if not self.link.is_open:
             return
+        token = self._interlock.estops
         with self._operation:
             self._disconnecting = True
             try:
                 if self.config.disconnect_policy == DisconnectPolicy.REST:
                     if self._walk_to_rest(own=True):
-                        if not self.disable():
+                        if not self._disable(self._abort_on_estop(token, "disconnect's rest policy")):
                             log.warning("PiPER did not confirm it disabled its motors")
                     else:
                         log.warning("PiPER did not reach the rest pose; left enabled and holding (not dropped)")
@@ -485,17 +497,17 @@ class PiperDriver:
     def rearm_watchdog(self) -> None:
         """Resume after a watchdog trip or bus-off, once fresh feedback arrives again (logged).
 
-        Nothing is known of the gap: the arm may have been power-cycled and put in high-follow (by a
-        linked leader). In position mode on firmware that needs a reset to leave it, motion stays
-        latched until ``enable()`` has run the exit."""
+        Nothing is known of the gap: the arm may have been power-cycled into high-follow (by a linked
+        leader), reset, or given another speed by another host while our reader was down. On every
+        firmware motion stays latched until ``enable()`` has selected and confirmed our mode (and, on
+        firmware that needs one, run the high-follow exit)."""
         self.link.rearm()
         if not self.config.high_follow:
             self._may_be_high_follow = True
-            if self._high_follow_exit_needs_reset():
-                self._interlock.close(
-                    "feedback stopped for a while and the arm may have been put in high-follow meanwhile, which "
-                    "this firmware leaves only after a reset; call enable()"
-                )
+        self._interlock.close(
+            "feedback stopped for a while and the arm may have been put in high-follow meanwhile (or power-cycled, "
+            "reset, or given another speed); call enable()"
+        )
 
     # -------------------------------------------------------------------------------- enable
     def enable(self) -> None:
@@ -516,20 +528,48 @@ class PiperDriver:
             self._enable(token, resuming=False)
 
     def _enable(self, token: int, resuming: bool) -> None:
+        """Another host's reset (0x150 02) or high-follow request seen at any point of the handshake or the
+        mode selection, up to the status that confirms our 0x151, starts it over from the wait for the
+        motor-off (at most ``MAX_ENABLE_RESTARTS`` times). One bus delivers frames in order, so a reset the
+        firmware acted on before our 0x151 reaches our reader before the status that confirms it."""
         self._interlock.close("enable() is in progress")
-        if self._foreign_high_follow_since(self._session_start):
+        began = self.clock.monotonic()
+        if self._foreign_high_follow_since(min(self._mode_mark, self._high_follow_since)):
             self._may_be_high_follow = True
-        self._recover_faults(token)
+        self._session_start = self._high_follow_since = began
+        try:
+            self._recover_faults(token)
+            restarts = 0
+            while True:
+                try:
+                    self._enable_once(token)
+                    break
+                except _Restart as exc:
+                    restarts += 1
+                    if restarts > MAX_ENABLE_RESTARTS:
+                        raise EnableTimeoutError(
+                            f"PiPER on {self.link.where}: {exc.reason} during enable() {restarts} times; "
+                            "find the other host and stop it, then call enable() again"
+                        ) from None
+                    log.warning("PiPER on %s: %s during enable(); starting over", self.link.where, exc.reason)
+        except BaseException as exc:
+            self._interlock.close(f"the last enable() failed ({type(exc).__name__}); call enable()")
+            raise
+        if not self._interlock.open(token, clear_estop=resuming):
+            self._abort_on_estop(token, "enable")()  # raises: an e-stop was requested after the last frame
+
+    def _enable_once(self, token: int) -> None:
+        """Leave high-follow if needed, wait out any reset's motor-off, run the 0x471 handshake, then
+        select and confirm the mode; raises ``_Restart`` on another host's reset or high-follow request."""
         self._leave_high_follow(token)
-        self._wait_out_reset(token)
-        self._session_start = self.clock.time()
+        self._wait_out_resets(token)
         timeout = self.config.enable_timeout_s
-        started = self.clock.time()  # frames are stamped on this clock: only later ones count
-        deadline = self.clock.monotonic() + timeout
+        started = self.clock.monotonic()  # frames are stamped on this clock: only later ones count
+        deadline = started + timeout
         backoff = ENABLE_BACKOFF_START_S
         requests = 0
         request = encode(MotorEnable(MOTOR_ALL_JOINTS, True))
-        guard = self._abort_on_estop(token, "enable")
+        guard = self._enable_guard(token)
         while True:
             try:
                 self._send(request, self._gripper_hold(GripperStatusCode.ENABLE), guard=guard)
@@ -543,9 +583,28 @@ class PiperDriver:
             if self.clock.monotonic() >= deadline:
                 raise EnableTimeoutError(self._enable_failure(started, requests))
             backoff = min(backoff * 2, ENABLE_BACKOFF_CAP_S)
-        self._select_mode(deadline, guard)
-        if not self._interlock.open(token, clear_estop=resuming):
-            guard()  # raises: an e-stop was requested after the last frame
+        mode_sent_at = self._select_mode(deadline, guard)
+        guard()  # a reset acted on before our confirmed 0x151 has been read by now
+        self._mode_mark = mode_sent_at
+
+    def _enable_guard(self, token: int) -> Callable[[], None]:
+        """The e-stop guard of the handshake and the mode selection, which also raises ``_Restart`` once
+        another host's reset or (where it needs the exit) high-follow request arrives."""
+        estop = self._abort_on_estop(token, "enable")
+
+        def guard() -> None:
+            estop()
+            if self._foreign_reset_since(self._resets_waited) is not None:
+                raise _Restart("another host reset the arm (0x150 02)")
+            if (
+                not self.config.high_follow
+                and self._foreign_high_follow_since(self._high_follow_since)
+                and self._high_follow_exit_needs_reset()
+            ):
+                self._may_be_high_follow = True
+                raise _Restart("another host asked for high-follow (0x151 … AD)")
+
+        return guard
 
     def _enable_failure(self, started: float, requests: int) -> str:
         """Why the enable handshake timed out, with the remedy."""
@@ -555,6 +614,9 @@ class PiperDriver:
             f"PiPER on {self.link.where} did not report enabled within {self.config.enable_timeout_s:.1f} s after "
             f"{requests} enable requests (still disabled: {', '.join(missing)}); "
         )
+        powered = [f"joint_{j}" for j, on in enumerate(state.joints_enabled, start=1) if on]
+        if powered:
+            message += f"{', '.join(powered)} stay enabled and holding (disable() switches them off: the arm falls); "
         angles = state.joint_positions_rad or ()
         at_limit = [
             f"joint_{j} at {angle:.4f} rad, limits [{lower:.4f}, {upper:.4f}]"
@@ -589,18 +651,15 @@ class PiperDriver:
         release = firmware_release(self.link.state().firmware_version)
         return release is None or release < LEAVES_HIGH_FOLLOW_WITHOUT_RESET
 
-    def _foreign_mode_since(self, since: float) -> ModeControl | None:
-        """The latest mode change (0x151) from another host (a plugged-in leader), if after ``since``."""
-        kept = self.link.cache.latest(ID_MODE_CONTROL)
-        if kept is None or kept[1] <= since:
-            return None
-        mode = decode_command(ID_MODE_CONTROL, kept[0])
-        return mode if isinstance(mode, ModeControl) else None
+    def _foreign_modes_since(self, since: float) -> list[ModeControl]:
+        """Every distinct mode change (0x151) another host (a plugged-in leader) sent after ``since``, oldest first."""
+        payloads = self.link.cache.payloads_since(ID_MODE_CONTROL, since)
+        found = (decode_command(ID_MODE_CONTROL, data) for data, _ in payloads)
+        return [mode for mode in found if isinstance(mode, ModeControl)]
 
     def _foreign_high_follow_since(self, since: float) -> bool:
         """Whether another host (a plugged-in leader) asked for high-follow (0x151 … AD) after ``since``."""
-        mode = self._foreign_mode_since(since)
-        return mode is not None and mode.mit_mode == MIT_MODE_HIGH_FOLLOW
+        return any(mode.mit_mode == MIT_MODE_HIGH_FOLLOW for mode in self._foreign_modes_since(since))
 
     def _is_our_mode(self, mode: ModeControl) -> bool:
         """Whether ``mode`` moves the arm as ours does (the speed matters only outside high-follow)."""
@@ -609,12 +668,9 @@ class PiperDriver:
         return same and (self.config.high_follow or mode.speed_percent == ours.speed_percent)
 
     def _foreign_reset_since(self, since: float) -> float | None:
-        """When another host last reset the arm (0x150 02), if after ``since``."""
-        kept = self.link.cache.latest(ID_EMERGENCY_STOP)
-        if kept is None or kept[1] <= since:
-            return None
-        stop = decode_command(ID_EMERGENCY_STOP, kept[0])
-        return kept[1] if isinstance(stop, EmergencyStop) and stop.action == EStopAction.RESUME else None
+        """When another host last reset the arm (0x150 02), if after ``since`` (a later e-stop hides nothing)."""
+        payloads = self.link.cache.payloads_since(ID_EMERGENCY_STOP, since)
+        return max((stamp for data, stamp in payloads if data[0] == EStopAction.RESUME), default=None)
 
     def _leave_high_follow(self, token: int) -> None:
         if self.config.high_follow or not self._may_be_high_follow or not self._high_follow_exit_needs_reset():
@@ -634,23 +690,30 @@ class PiperDriver:
         )
         self._reset(token)
 
-    def _wait_out_reset(self, token: int) -> None:
-        """Wait (bounded by ``reset_settle_s``) until the firmware has switched the motors off after a
-        reset: ours, another host's seen on the bus, or one inferred from standby with enable bits set."""
-        now = self.clock.time()
+    def _wait_out_resets(self, token: int) -> None:
+        """Wait until the firmware has switched the motors off after the newest reset: ours, another host's
+        seen on the bus, or one inferred from standby with enable bits set. A newer foreign reset during the
+        wait restarts the firmware's countdown, and the wait follows it. Motors still on ``reset_settle_s``
+        after a reset they should have gone off for is a failure (``EnableTimeoutError``); after an inferred
+        one it only shows there was none (a reset before we watched switches them off within ~0.73 s)."""
+        now = self.clock.monotonic()
         settle = self.config.reset_settle_s
         state = self.link.state()
-        sent_at, enabled_before = self._reset_sent_at, self._enabled_before_reset
+        target, enabled_before = self._reset_sent_at, self._enabled_before_reset
         self._reset_sent_at = None
-        foreign = self._foreign_reset_since(max(now - settle, self._session_start))  # not one already waited out
-        if foreign is not None and (sent_at is None or foreign > sent_at):
-            log.warning(
-                "PiPER on %s: another host reset the arm %.3f s ago; waiting out its delayed motor-off",
-                self.link.where,
-                now - foreign,
-            )
-            sent_at, enabled_before = foreign, any(state.joints_enabled)
-        if sent_at is None:
+        inferred = False
+        foreign = self._foreign_reset_since(self._resets_waited)
+        if foreign is not None and (target is None or foreign > target):
+            if now - foreign < settle:
+                log.warning(
+                    "PiPER on %s: another host reset the arm %.3f s ago; waiting out its delayed motor-off",
+                    self.link.where,
+                    now - foreign,
+                )
+                target, enabled_before = foreign, any(state.joints_enabled)
+            else:  # long enough ago that its motor-off has happened
+                self._resets_waited = foreign
+        if target is None:
             if not _may_be_counting_down(state):
                 return
             log.warning(
@@ -660,18 +723,42 @@ class PiperDriver:
                 RESET_MOTOR_OFF_S,
                 settle,
             )
-            sent_at, enabled_before = now, True
-        remaining = max(sent_at + settle - now, 0.0)
+            target, enabled_before, inferred = now, True, True
         guard = self._abort_on_estop(token, "the wait for a reset's motor-off")
-        if enabled_before:  # the motor-off shows as enable bits going clear after the reset
-            if not self._wait(guard, lambda s: _joints_disabled_since(s, sent_at), remaining):
-                log.info("PiPER on %s: motors still on %.1f s after the reset", self.link.where, remaining)
-        else:  # already off: nothing to observe, wait the delay itself
-            self._wait(guard, lambda s: False, remaining)
+        while True:
+            reset_at, motors_were_on = target, enabled_before
 
-    def _select_mode(self, deadline: float, guard: Callable[[], None]) -> None:
-        """Send 0x151 until the status confirms it (resent every ``MODE_RESEND_S``: a frame can be lost)."""
-        sent_at = self.clock.time()
+            def off_or_newer(s: ArmState, at: float = reset_at, on: bool = motors_were_on) -> bool:
+                # Motors on before the reset: the motor-off shows as enable bits going clear after it. Already
+                # off: nothing to observe, the delay itself is waited.
+                return self._foreign_reset_since(at) is not None or (on and _joints_disabled_since(s, at))
+
+            self._wait(guard, off_or_newer, max(target + settle - self.clock.monotonic(), 0.0))
+            newer = self._foreign_reset_since(target)
+            if newer is None:
+                break
+            log.warning(
+                "PiPER on %s: another host reset the arm again %.3f s after the reset being waited out; waiting "
+                "out its delayed motor-off",
+                self.link.where,
+                newer - target,
+            )
+            target, enabled_before, inferred = newer, any(self.link.state().joints_enabled), False
+        if enabled_before and not _joints_disabled_since(self.link.state(), target):
+            if inferred:
+                log.info("PiPER on %s: motors still on %.1f s on: no reset was pending", self.link.where, settle)
+                return
+            raise EnableTimeoutError(
+                f"PiPER on {self.link.where}: motors still on {settle:.2f} s after a reset (the firmware switches "
+                f"them off ~{RESET_MOTOR_OFF_S:.2f} s after one): not enabling into a motor-off that may still "
+                "come; support the arm, then call enable() again"
+            )
+        self._resets_waited = max(self._resets_waited, target)
+
+    def _select_mode(self, deadline: float, guard: Callable[[], None]) -> float:
+        """Send 0x151 until the status confirms it (resent every ``MODE_RESEND_S``: a frame can be lost);
+        returns when the first was sent."""
+        sent_at = self.clock.monotonic()
         end = max(deadline, self.clock.monotonic() + FEEDBACK_PERIOD_S * 4)
 
         def confirmed(s: ArmState) -> bool:
@@ -685,6 +772,7 @@ class PiperDriver:
                 problem = _mode_problem(self.link.state()) or "no status frame"
                 raise EnableTimeoutError(f"PiPER on {self.link.where} did not confirm the 0x151 mode change: {problem}")
         self._may_be_high_follow = self.config.high_follow
+        return sent_at
 
     def disable(self) -> bool:
         """Disable all motors and the gripper; True once the arm reports every enable bit clear. Motion
@@ -693,12 +781,15 @@ class PiperDriver:
         Warning: a raised arm falls when its motors lose power.
         """
         with self._operation:
-            self._interlock.close("the motors were disabled; call enable()")
-            sent_at = self.clock.time()
-            frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
-            self.link.send(*frames)
-            self.link.send(*frames)
-            return self.link.wait_for(lambda s: _all_disabled_since(s, sent_at), self.config.enable_timeout_s)
+            return self._disable(None)
+
+    def _disable(self, guard: Callable[[], None] | None) -> bool:
+        self._interlock.close("the motors were disabled; call enable()")
+        sent_at = self.clock.monotonic()
+        frames = (encode(MotorEnable(MOTOR_ALL_JOINTS, False)), self._gripper_hold(GripperStatusCode.DISABLE))
+        self.link.send(*frames, guard=guard)
+        self.link.send(*frames, guard=guard)
+        return self.link.wait_for(lambda s: _all_disabled_since(s, sent_at), self.config.enable_timeout_s)
 
     # ----------------------------------------------------------------------------- recovery
     def clear_errors(self) -> tuple[Fault, ...]:
@@ -714,7 +805,7 @@ class PiperDriver:
         code = GripperStatusCode.ENABLE_CLEAR_ERROR
         if gripper is None or not gripper.value.enabled:
             code = GripperStatusCode.DISABLE_CLEAR_ERROR
-        sent_at = self.clock.time()
+        sent_at = self.clock.monotonic()
         guard = self._abort_on_estop(token, "clear_errors")
         self._send(encode(JointConfig(NUM_JOINTS + 1, clear_error=True)), self._gripper_hold(code), guard=guard)
 
@@ -745,11 +836,12 @@ class PiperDriver:
         )
         state = self.link.state()
         self._enabled_before_reset = all(state.joints_enabled)
-        sent_at = self.clock.time()
+        sent_at = self.clock.monotonic()
         guard = self._abort_on_estop(token, "the reset")
         self._send(encode(EmergencyStop(EStopAction.RESUME)), guard=guard)
         self._reset_sent_at = sent_at
         self._may_be_high_follow = False
+        self._high_follow_since = sent_at  # the reset left any high-follow requested before it
 
         # Frames sent after ours but before the firmware acted on it are fresh too and still show the old
         # state: the reset counts once fresh feedback shows its effect (no blocking fault, the e-stop included).
@@ -860,6 +952,8 @@ class PiperDriver:
         try:
             self.link.send(*frames, guard=guard)
         except PartialCommandError as exc:
+            if isinstance(exc.cause, _Restart):  # the enable starts over: nothing to name
+                raise exc.cause from exc
             if isinstance(exc.cause, EmergencyStopError | ArmNotReadyError):
                 raise type(exc.cause)(str(exc)) from exc
             raise
@@ -906,17 +1000,15 @@ class PiperDriver:
     def _foreign_problem(self) -> str | None:
         """A reset, or a mode change other than ours, from another host since the enable. Commands send no
         0x151, so nothing else would put our mode back."""
-        if self._foreign_reset_since(self._session_start) is not None:
+        if self._foreign_reset_since(self._resets_waited) is not None:
             return (
                 f"another host reset the arm (0x150 02): its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later; "
                 "call enable()"
             )
-        mode = self._foreign_mode_since(self._session_start)
-        if mode is None or self._is_our_mode(mode):
-            return None
+        modes = self._foreign_modes_since(self._mode_mark)  # every one of them, not only the latest
         if (
-            mode.mit_mode == MIT_MODE_HIGH_FOLLOW
-            and not self.config.high_follow
+            not self.config.high_follow
+            and any(mode.mit_mode == MIT_MODE_HIGH_FOLLOW for mode in modes)
             and self._high_follow_exit_needs_reset()
         ):
             self._may_be_high_follow = True
@@ -924,6 +1016,9 @@ class PiperDriver:
                 "another host (a plugged-in leader?) put the arm in high-follow (0x151 … AD), which this firmware "
                 "leaves only after a reset; call enable()"
             )
+        mode = next((m for m in modes if not self._is_our_mode(m)), None)
+        if mode is None:
+            return None
         theirs, ours = (
             " ".join(f"{byte:02x}" for byte in (m.ctrl_mode, m.move_mode, m.speed_percent, m.mit_mode))
             for m in (mode, self._mode())
@@ -1008,6 +1103,14 @@ class PiperDriver:
         gripper = self.link.state().gripper
         opening = gripper.value.opening_m if gripper is not None else 0.0
         return self._gripper_frame(clamp(opening, *self.limits.gripper_m), code)
+
+
+class _Restart(ArmNotReadyError):
+    """Another host reset the arm or asked for high-follow while ``enable`` ran: it starts over."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
 
 
 def _blocking(state: ArmState) -> tuple[Fault, ...]:

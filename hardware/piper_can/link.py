@@ -1,9 +1,12 @@
 """One python-can bus to a PiPER: a reader thread feeding a ``FeedbackCache``, a stale-feedback
 watchdog, CAN error frames, and locked sends.
 
-Every frame is stamped with its arrival time: python-can's ``msg.timestamp`` (the kernel's receive time
-on socketcan and udp_multicast, the send time on virtual), or this process's clock where an interface
-stamps frames on another clock. The ``Watchdog`` gives each watched frame ID its own timeout and counts
+Every frame is stamped with its arrival time on the clock's *monotonic* time: python-can's
+``msg.timestamp`` (the kernel's CLOCK_REALTIME receive time on socketcan and udp_multicast, the send time on
+virtual) re-based by the wall-to-monotonic offset read when the frame is handled, so a wall-clock step (an
+NTP step, a VM resync) neither freezes the cache nor blinds the watchdog; a stamp that lands in the future
+or far in the past (a frame in flight across a step, an interface stamping on another clock) is replaced by
+the handling time. The ``Watchdog`` gives each watched frame ID its own timeout and counts
 as stale when some watched ID last *arrived* longer ago than that. The reader drains every queued
 frame before it judges, and trips (latched) when the bus went silent or a watched frame stopped;
 ``raise_if_unhealthy`` applies the same test when asked, so a reader that fell behind (starved of CPU)
@@ -47,7 +50,7 @@ log = logging.getLogger(__name__)
 
 # Host -> arm frames worth caching when another host or a linked leader sends them: its targets, its
 # mode changes, and its e-stops and resets. Interfaces that deliver our own frames back (udp_multicast
-# loops them to every local listener) are filtered: see ``EchoFilter``.
+# loops them to every local listener; ``receive_own_messages``) are filtered: see ``EchoFilter``.
 OBSERVED_CONTROL_IDS = COMMAND_IDS - {
     ID_FIRMWARE,
     ID_JOINT_CONFIG,
@@ -65,7 +68,7 @@ _ECHOES_KEPT = 64
 _IDLE_WAIT_S = 0.05
 _POLL_S = 0.002
 # python-can timestamps on the time.time() clock for socketcan, udp_multicast and virtual; an interface
-# whose stamps are further off than this uses another clock (e.g. the adapter's), so use our own.
+# whose stamps are further off than this uses another clock (e.g. the adapter's), so use the handling time.
 _PLAUSIBLE_CLOCK_SKEW_S = 5.0
 # SocketCAN error classes (linux/can/error.h), carried in an error frame's ID.
 CAN_ERR_BUSOFF = 0x040
@@ -147,7 +150,7 @@ class Watchdog:
 
     def seen(self, frame_id: int, arrived: float) -> None:
         if frame_id in self.timeouts:
-            self.last_seen[frame_id] = arrived
+            self.last_seen[frame_id] = max(arrived, self.last_seen.get(frame_id, arrived))
 
     def overdue(self, now: float) -> list[tuple[int, float]]:
         """``(id, age)`` of every watched ID older than its timeout at ``now`` (none when disarmed)."""
@@ -175,19 +178,31 @@ class Watchdog:
         ]
 
 
-class EchoFilter:
-    """Recognises our own control frames delivered back to us, so they do not pass for another host's."""
+def bus_echoes(interface: str, bus_options: Mapping[str, object]) -> bool:
+    """Whether python-can delivers our own sent frames back to us on this bus (udp_multicast always loops
+    them to local listeners; any interface with ``receive_own_messages``)."""
+    return interface == "udp_multicast" or bool(bus_options.get("receive_own_messages", False))
 
-    def __init__(self) -> None:
+
+class EchoFilter:
+    """Recognises our own control frames delivered back to us, so they do not pass for another host's. On a
+    bus that does not echo (``echoes`` False) nothing is an echo: a frame with our bytes is another host's."""
+
+    def __init__(self, echoes: bool) -> None:
+        self.echoes = echoes
         self._lock = threading.Lock()
         self._sent: deque[tuple[int, bytes, float]] = deque(maxlen=_ECHOES_KEPT)
 
     def sent(self, frame_id: int, data: bytes, at: float) -> None:
+        if not self.echoes:
+            return
         with self._lock:
             self._sent.append((frame_id, data, at))
 
     def is_echo(self, frame_id: int, data: bytes, at: float) -> bool:
         """Whether this received frame is one we sent within ``ECHO_WINDOW_S`` (each echo counts once)."""
+        if not self.echoes:
+            return False
         with self._lock:
             for entry in self._sent:
                 sent_id, sent_data, sent_at = entry
@@ -226,7 +241,7 @@ class PiperLink:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._heard: set[int] = set()
-        self._echoes = EchoFilter()
+        self._echoes = EchoFilter(bus_echoes(interface, self.bus_options))
         self._stale: FeedbackStaleError | None = None
         self._bus_error: CanBusError | None = None
         self.stale_at: float | None = None
@@ -261,7 +276,7 @@ class PiperLink:
                 f"no PiPER heard on {self.where} within {timeout_s:.1f} s (missing frames {missing}); "
                 "check the channel, the wiring and that the arm is powered"
             )
-        self._arm(self.clock.time())
+        self._arm(self.clock.monotonic())
 
     def _arm(self, now: float) -> None:
         self._stale = None
@@ -272,7 +287,7 @@ class PiperLink:
         """Re-arm a tripped watchdog (and clear a bus-off) once every watched frame arrived again after
         the trip; otherwise raise ``FeedbackStaleError`` naming what is still missing."""
         self.poll()
-        now = self.clock.time()
+        now = self.clock.monotonic()
         since = self.stale_at if self.stale_at is not None else (self.watchdog.armed_at or 0.0)
         missing = self.watchdog.missing_since(since, now)
         if not self._reading() or missing:
@@ -319,7 +334,7 @@ class PiperLink:
             timestamp=self.clock.time(), arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False
         )
         if frame.arbitration_id in OBSERVED_CONTROL_IDS:
-            self._echoes.sent(frame.arbitration_id, bytes(frame.data), msg.timestamp)
+            self._echoes.sent(frame.arbitration_id, bytes(frame.data), self.clock.monotonic())
         try:
             bus.send(msg, timeout=0.05)
         except can.CanError as exc:
@@ -338,7 +353,7 @@ class PiperLink:
         with self._poll_lock:
             while (msg := bus.recv(timeout=0)) is not None:
                 self._handle(msg)
-            now = self.clock.time()
+            now = self.clock.monotonic()
             self._check_age(now)
             self.cache.roll_rates(now)
 
@@ -371,9 +386,9 @@ class PiperLink:
             # timeout to drain them before judging.
             clock = self.clock
             deadline = clock.monotonic() + min(self.watchdog.timeouts.values())
-            while self.watchdog.overdue(clock.time()) and clock.monotonic() < deadline:
+            while self.watchdog.overdue(clock.monotonic()) and clock.monotonic() < deadline:
                 clock.sleep(_POLL_S / 4)
-            self._check_age(clock.time())
+            self._check_age(clock.monotonic())
         if self._stale is not None:
             raise self._stale
 
@@ -416,19 +431,19 @@ class PiperLink:
             wait = _IDLE_WAIT_S
             deadline = self.watchdog.next_deadline()
             if deadline is not None and self._stale is None:
-                wait = min(max(deadline - self.clock.time(), 5e-4), wait)
+                wait = min(max(deadline - self.clock.monotonic(), 5e-4), wait)
             try:
                 msg = bus.recv(timeout=wait)
                 while True:  # drain everything queued before judging the age
                     if msg is not None:
                         self._handle(msg)
-                    now = self.clock.time()
+                    now = self.clock.monotonic()
                     msg = bus.recv(timeout=0)
                     if msg is None:
                         break
             except Exception as exc:  # the bus went away under us
                 if self._stale is None:
-                    self.stale_at = self.clock.time()
+                    self.stale_at = self.clock.monotonic()
                     self._stale = FeedbackStaleError(f"reading the CAN bus {self.where} failed: {exc}")
                     log.error("%s", self._stale)
                 return
@@ -446,14 +461,20 @@ class PiperLink:
         if len(msg.data) != DLC:
             self.bad_frames += 1
             return
-        now = self.clock.time()
-        arrived = msg.timestamp if abs(now - msg.timestamp) < _PLAUSIBLE_CLOCK_SKEW_S else now
+        arrived = self.arrival(msg.timestamp)
         data = bytes(msg.data)
         if frame_id in OBSERVED_CONTROL_IDS and self._echoes.is_echo(frame_id, data, arrived):
             return
         self.cache.update(frame_id, data, arrived)
         self._heard.add(frame_id)
         self.watchdog.seen(frame_id, arrived)
+
+    def arrival(self, wall_stamp: float) -> float:
+        """A frame's wall-clock receive stamp on the monotonic clock: re-based by the offset between the two
+        clocks now, or now itself when that lands in the future or ``_PLAUSIBLE_CLOCK_SKEW_S`` in the past."""
+        now = self.clock.monotonic()
+        arrived = wall_stamp + (now - self.clock.time())
+        return arrived if now - _PLAUSIBLE_CLOCK_SKEW_S < arrived <= now else now
 
     def _on_error_frame(self, msg: can.Message) -> None:
         classes = [name for bit, name in CAN_ERR_CLASSES.items() if msg.arbitration_id & bit] or ["unknown"]

@@ -6,7 +6,9 @@ import threading
 from dataclasses import dataclass, field
 
 from .codec import (
+    ID_EMERGENCY_STOP,
     ID_FIRMWARE,
+    ID_MODE_CONTROL,
     ID_MOTOR_LIMITS,
     NUM_JOINTS,
     ArmStatus,
@@ -28,6 +30,10 @@ from .codec import (
 from .errors import Fault
 
 RATE_WINDOW_S = 0.5
+# Control frames whose every distinct payload is remembered with its newest stamp (not only the latest frame):
+# another host's mode changes and resets, so one frame cannot hide an earlier one.
+HISTORY_IDS = frozenset({ID_MODE_CONTROL, ID_EMERGENCY_STOP})
+_PAYLOADS_KEPT = 512
 # Motor torque constants (N·m per A of 0x25x current), J1-J3 and J4-J6, as the vendor SDK scales
 # effort. Per the vendor's Q&A, firmware up to S-V1.8-2 may report J1-J3 at a quarter of the torque.
 TORQUE_CONSTANTS_NM_PER_A = (1.18125,) * 3 + (0.95844,) * 3
@@ -42,7 +48,7 @@ _NOT_FAULTS = {
 
 @dataclass(frozen=True, slots=True)
 class Stamped[T]:
-    """A value and when its frame arrived (seconds, ``time.time()`` epoch)."""
+    """A value and when its frame arrived (seconds on the clock's monotonic time, see ``piper_can.link``)."""
 
     value: T
     timestamp: float
@@ -137,6 +143,7 @@ class FeedbackCache:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._latest: dict[int, tuple[bytes, float]] = {}
+        self._payloads: dict[int, dict[bytes, float]] = {i: {} for i in HISTORY_IDS}
         self._limits: dict[int, MotorLimits] = {}
         self._firmware_text = b""
         self._counts: dict[int, int] = {}
@@ -157,12 +164,24 @@ class FeedbackCache:
             kept = self._latest.get(frame_id)
             if kept is None or kept[1] <= timestamp:
                 self._latest[frame_id] = (data, timestamp)
+            payloads = self._payloads.get(frame_id)
+            if payloads is not None:
+                payloads[data] = max(timestamp, payloads.pop(data, timestamp))  # re-inserted: newest last
+                if len(payloads) > _PAYLOADS_KEPT:
+                    del payloads[next(iter(payloads))]
             self._counts[frame_id] = self._counts.get(frame_id, 0) + 1
 
     def latest(self, frame_id: int) -> tuple[bytes, float] | None:
         """The raw data and stamp kept for ``frame_id`` (cheap: no decoding), or None."""
         with self._lock:
             return self._latest.get(frame_id)
+
+    def payloads_since(self, frame_id: int, since: float) -> list[tuple[bytes, float]]:
+        """Every distinct payload of ``frame_id`` (one of ``HISTORY_IDS``) received after ``since``, with its
+        newest stamp, oldest first."""
+        with self._lock:
+            found = [(data, stamp) for data, stamp in self._payloads[frame_id].items() if stamp > since]
+        return sorted(found, key=lambda item: item[1])
 
     def roll_rates(self, now: float) -> None:
         """Close the rate window when it is ``RATE_WINDOW_S`` old: rate = frames / elapsed."""

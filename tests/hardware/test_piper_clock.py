@@ -29,3 +29,13 @@ def test_bad_periods_and_negative_sleeps_are_refused():
     with pytest.raises(ValueError, match="cannot sleep -1"):
         clock.sleep(-1)
     assert SYSTEM_CLOCK.real_time and not clock.real_time
+
+
+def test_a_wall_clock_step_leaves_monotonic_time_and_timers_alone():
+    clock = SimulatedClock(start=10.0)
+    fired: list[float] = []
+    clock.every(0.005, lambda: fired.append(clock.monotonic()))
+    clock.step_wall(-2.0)  # an NTP step back
+    assert (clock.time(), clock.monotonic()) == (8.0, 10.0)
+    clock.sleep(0.01)
+    assert fired == [10.005, 10.01] and clock.time() == pytest.approx(8.01, abs=1e-12)
