@@ -398,7 +398,7 @@ def alive(pid: int) -> bool:
         return False
 
 
-def test_what_would_fail_late_is_refused_before_any_work(two_policies, tmp_path):
+def test_what_would_fail_late_is_refused_before_any_work(two_policies, tmp_path, synthetic_dataset):
     """Issue 35, item 4: an output dir that is a file failed at the first write (eval lost its evaluation),
     ``spo --ratio_top_k=0`` after the rollouts, ``rsft --demos_root=<missing>`` after the whole collection."""
     blocker = tmp_path / "a_file"
@@ -418,6 +418,16 @@ def test_what_would_fail_late_is_refused_before_any_work(two_policies, tmp_path)
     engines = []
     with pytest.raises(UsageError, match="--demos_root=.* is not a LeRobotDataset"):
         run_rsft(cfg, make_engine=lambda *args: engines.append(args) or ScriptedEngine(mixed))
+    # Issue 58, item 2: demonstrations of another shape failed with a traceback after the whole collection.
+    cfg = dataclasses.replace(
+        cfg, demos_root=synthetic_dataset, demos_repo_id="local/synthetic", policy=policy_config(two_policies[0])
+    )
+    with pytest.raises(UsageError) as refused:
+        run_rsft(cfg, make_engine=lambda *args: engines.append(args) or ScriptedEngine(mixed))
+    assert str(refused.value).startswith(
+        f"--demos_root={synthetic_dataset} does not fit the policy: it has 'observation.state' of shape (6,), the "
+        "policy's is (39,), 'action' of shape (3,), the policy's is (4,), tasks the policy was not trained on ("
+    )
     assert engines == []
 
 

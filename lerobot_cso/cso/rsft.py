@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 from lerobot.configs import parser
+from lerobot.configs.types import FeatureType
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import MetricsTracker
@@ -378,9 +379,30 @@ def success_advantages(
 
 
 def check_demos(cfg: RSFTConfig) -> None:
-    """Refuse a ``demos_root`` that holds no LeRobotDataset."""
-    if not (cfg.demos_root / "meta" / "info.json").is_file():
-        raise UsageError(f"--demos_root={cfg.demos_root} is not a LeRobotDataset (no meta/info.json)")
+    """Refuse a ``demos_root`` that holds no LeRobotDataset, or one whose frames the policy cannot read: each of
+    its inputs and its action (state and action of the policy's shape), and only tasks it knows. Run before the
+    collection, not after it."""
+    root = cfg.demos_root
+    if not (root / "meta" / "info.json").is_file():
+        raise UsageError(f"--demos_root={root} is not a LeRobotDataset (no meta/info.json)")
+    try:
+        meta = LeRobotDatasetMetadata(cfg.demos_repo_id, root=root)
+    except (OSError, ValueError, KeyError) as e:
+        raise UsageError(f"--demos_root={root}: its metadata cannot be read ({' '.join(str(e).split())})") from None
+    features = {**(cfg.policy.input_features or {}), **(cfg.policy.output_features or {})}
+    problems = []
+    for key, feature in features.items():
+        have = meta.features.get(key)
+        if have is None:
+            problems.append(f"no '{key}'")
+        elif feature.type is not FeatureType.VISUAL and tuple(have["shape"]) != tuple(feature.shape):
+            problems.append(f"'{key}' of shape {tuple(have['shape'])}, the policy's is {tuple(feature.shape)}")
+    known = getattr(cfg.policy, "tasks", None)
+    unknown = sorted(t for t in meta.tasks.index if known and t not in known) if meta.tasks is not None else []
+    if unknown:
+        problems.append(f"tasks the policy was not trained on ({'; '.join(map(repr, unknown))})")
+    if problems:
+        raise UsageError(f"--demos_root={root} does not fit the policy: it has {', '.join(problems)}")
 
 
 def demo_decisions(cfg: RSFTConfig, policy: CSOPolicy, pre: Callable, keys: list[str], count: int) -> DecisionItems:
