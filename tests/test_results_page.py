@@ -2,6 +2,7 @@
 a results file makes the check fail (the page cannot drift from the files)."""
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -50,3 +51,15 @@ def test_a_missing_results_file_is_one_error_line(tmp_path):
     run = page("--check", f"--results_dir={tmp_path / 'results'}")
     assert run.returncode != 0
     assert run.stderr.strip().splitlines()[-1].startswith("error: no results file ")
+
+
+def test_the_readmes_results_table_is_read_from_the_page():
+    """Every number in the README's results table (its IL → R-SFT → CSO and CSO − IL columns) is on docs/results.md,
+    and every results file it links exists."""
+    section = (ROOT / "README.md").read_text().split("\n## Results\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line.strip("|").split("|") for line in section.splitlines() if line.startswith("| ") and "---" not in line]
+    on_page = set(re.findall(r"[+−]?\d+\.?\d*", (ROOT / "docs" / "results.md").read_text()))
+    assert len(rows) >= 5
+    for _, rates, gain, link in rows[1:]:
+        assert set(re.findall(r"[+−]?\d+\.?\d*", rates + gain)) <= on_page, (rates, gain)
+        assert (ROOT / re.search(r"\((benchmarks/results/[\w.]+)\)", link)[1]).is_file()
