@@ -76,7 +76,15 @@ def load_policy(path: str | Path, config: PreTrainedConfig | None = None) -> tup
     The preprocessor moves observations to the policy's device (``--policy.device``), whatever device the
     checkpoint was saved from; the postprocessor returns actions on the CPU.
     """
-    policy = CSOPolicy.from_pretrained(path, config=config)
+    try:
+        policy = CSOPolicy.from_pretrained(path, config=config)
+    except RuntimeError as e:  # torch's load_state_dict: weights of another shape than the config's model
+        if "loading state_dict" not in str(e):
+            raise
+        raise UsageError(
+            f"{Path(path) / 'model.safetensors'} does not fit the policy its config describes (weights of another "
+            f"architecture, or a --policy.* setting that changes the model's shape): {str(e).splitlines()[-1].strip()}"
+        ) from None
     pre, post = make_pre_post_processors(
         policy.config,
         pretrained_path=str(path),

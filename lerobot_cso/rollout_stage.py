@@ -112,6 +112,7 @@ class RolloutStageConfig(PolicyPathConfig):
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:
             raise UsageError(f"max_steps must be in [1, {world.horizon}], got {self.max_steps}")
         self.sampling.check("sampling.")
+        check_policy_fits(self.policy, world)
         known = getattr(self.policy, "tasks", None)  # the task strings a language/one-hot policy was trained on
         unknown = [t for t in tasks if known and world.task_description(t) not in known]
         if unknown:
@@ -119,6 +120,24 @@ class RolloutStageConfig(PolicyPathConfig):
                 f"the policy was not trained on {', '.join(unknown)}; it knows: {'; '.join(map(repr, known))}"
             )
         return tasks
+
+
+def check_policy_fits(policy: Any, world: World) -> None:
+    """Refuse a policy whose state or action size is not one of the world's (a policy trained for another world or
+    robot), before any env is made; a world that does not say its sizes (a robot) is not checked here."""
+    features = {**(getattr(policy, "input_features", None) or {}), **(getattr(policy, "output_features", None) or {})}
+    for key, attribute in (("observation.state", "state_dims"), ("action", "action_dim")):
+        if key not in features or getattr(world, attribute, None) is None:
+            continue
+        allowed = getattr(world, attribute)
+        allowed = allowed if isinstance(allowed, tuple) else (allowed,)
+        shape = tuple(features[key].shape)
+        if shape not in [(n,) for n in allowed]:
+            wanted = " or ".join(f"({n},)" for n in allowed)
+            raise UsageError(
+                f"the policy's '{key}' has shape {shape}, {world.name}'s is {wanted}: --policy.path="
+                f"{policy.pretrained_path} was trained for another world or robot"
+            )
 
 
 def policy_features(settings: RolloutStageConfig) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from lerobot.utils.import_utils import get_safe_default_video_backend
 
 import lerobot_policy_cso
 from lerobot_cso import cli, records, rollout_stage
+from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig
@@ -429,6 +430,25 @@ def test_what_would_fail_late_is_refused_before_any_work(two_policies, tmp_path,
         "policy's is (39,), 'action' of shape (3,), the policy's is (4,), tasks the policy was not trained on ("
     )
     assert engines == []
+
+
+def test_a_policy_of_another_action_size_is_refused_before_any_env(two_policies, tmp_path, capsys, scripted_rollouts):
+    """Issue 58, item 3: ``eval`` / ``spo`` of a 3-d action policy on MetaWorld gave 48-112 lines of env worker
+    tracebacks, and ``spo`` left its ``stage.json``."""
+    policy = shutil.copytree(two_policies[0], tmp_path / "three_d" / "pretrained_model")
+    config = json.loads((policy / "config.json").read_text())
+    config["output_features"]["action"]["shape"] = [3]
+    (policy / "config.json").write_text(json.dumps(config))
+    for stage in ("eval", "spo"):
+        out = tmp_path / stage
+        code, _, err = run_cli([stage, f"--policy.path={policy}", f"--tasks={TASKS[0]}", f"--output_dir={out}"], capsys)
+        assert code == 2 and err == (
+            f"error: the policy's 'action' has shape (3,), metaworld's is (4,): --policy.path={policy} was trained "
+            "for another world or robot"
+        )
+        assert not out.exists()
+    with pytest.raises(UsageError, match=rf"^{policy}/model.safetensors does not fit the policy its config describes"):
+        load_policy(policy)  # item 7: its weights are a 4-d action policy's
 
 
 def damaged_copies(policy: Path, root: Path) -> dict[str, Path]:
