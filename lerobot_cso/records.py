@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import json
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -26,6 +27,17 @@ from lerobot_cso.errors import UsageError, interruptible
 from lerobot_cso.stage import Stage, without_added_settings
 
 ALONE_RECORD = "stage.json"  # the record of a stage run by its own command, in its output dir
+# Settings of a policy that do not change what a stage makes with it: where it runs, where it is published.
+RUNTIME_POLICY_FIELDS = (
+    "device",
+    "pretrained_path",
+    "pretrained_revision",
+    "push_to_hub",
+    "repo_id",
+    "private",
+    "tags",
+    "license",
+)
 
 
 def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
@@ -115,13 +127,26 @@ def checkpoint_identity(path: Path) -> dict[str, str]:
     return {"path": str(Path(path).resolve()), "weights_sha256": digest.hexdigest()[:16]}
 
 
+def policy_overrides(config: Any) -> dict[str, Any]:
+    """The settings in which ``config``, a policy config loaded with ``--policy.*`` overrides, differs from the one
+    saved at its ``pretrained_path`` (not where it runs or is published: :data:`RUNTIME_POLICY_FIELDS`), as JSON."""
+    import draccus
+    from lerobot.configs.policies import PreTrainedConfig
+
+    saved, given = draccus.encode(PreTrainedConfig.from_pretrained(config.pretrained_path)), draccus.encode(config)
+    keys = sorted((saved.keys() | given.keys()) - set(RUNTIME_POLICY_FIELDS))
+    return json.loads(json.dumps({k: given.get(k) for k in keys if saved.get(k) != given.get(k)}, default=str))
+
+
 def run_alone(stage: Any, main: bool = True) -> Any:
     """Run a checkpoint stage (R-SFT, SPO) by its own command, under its record ``<output_dir>/stage.json``: its
-    settings, tasks and input checkpoint must match that record's to resume or skip (more SPO iterations
-    continue); returns the stage's summary. Only the ``main`` process writes the record, holding the output dir's
-    lock (:func:`~lerobot_cso.durable.output_lock`) meanwhile."""
+    settings, tasks and input checkpoint (with its ``--policy.*`` overrides) must match that record's to resume or
+    skip (more SPO iterations continue); returns the stage's summary. Only the ``main`` process writes the record,
+    holding the output dir's lock (:func:`~lerobot_cso.durable.output_lock`) meanwhile."""
     cfg = stage.cfg
-    spec = stage.spec() | {"tasks": cfg.validate(), "policy": checkpoint_identity(cfg.policy.pretrained_path)}
+    spec = stage.spec() | {"tasks": cfg.validate()}
+    overrides = policy_overrides(cfg.policy)  # the --policy.* settings given: what the stage made is theirs
+    spec["policy"] = checkpoint_identity(cfg.policy.pretrained_path) | ({"overrides": overrides} if overrides else {})
     elsewhere = "delete it or choose another --output_dir"
     with output_lock(cfg.output_dir) if main else nullcontext():
         return run_recorded(stage, cfg.output_dir / ALONE_RECORD, spec, stage.name, elsewhere, write=main)[0]

@@ -172,6 +172,21 @@ def test_standalone_spo_continues_only_what_it_can_honour(two_policies, tmp_path
     assert json.loads((out / "stage.json").read_text())["summary"][-1]["iteration"] == 2
 
 
+def test_policy_overrides_are_part_of_a_standalone_stages_record(two_policies, tmp_path, capsys, scripted_rollouts):
+    """Issue 58, item 5: a finished stage was skipped, or an SPO run continued, under other ``--policy.*`` settings
+    than it was made with, which were silently dropped; where the policy runs (``--policy.device``) binds nothing."""
+    out = tmp_path / "spo"
+    spo = ["spo", f"--policy.path={two_policies[0]}", f"--tasks={','.join(TASKS)}", f"--output_dir={out}"]
+    spo += ["--groups_per_iteration=2", "--epochs=1", "--minibatch_trajectories=4", "--group_size=4", "--lr=0.001"]
+    assert run_cli([*spo, "--iterations=1", "--policy.temperature=0.5"], capsys)[0] == 0
+    code, _, err = run_cli([*spo, "--iterations=1"], capsys)
+    assert code == 2 and "(policy.overrides.temperature: 0.5 → None)" in err, err
+    code, _, err = run_cli([*spo, "--iterations=2", "--policy.temperature=0.7"], capsys)
+    assert code == 2 and "policy.overrides.temperature: 0.5 → 0.7, spo.iterations: 1 → 2)" in err, err
+    code, stdout, _ = run_cli([*spo, "--iterations=2", "--policy.temperature=0.5", "--policy.device=cpu"], capsys)
+    assert code == 0 and "spo: continuing (spo.iterations: 1 → 2)" in stdout
+
+
 def test_standalone_rsft_is_complete_only_for_the_same_settings_and_policy(
     two_policies, tmp_path, capsys, scripted_rollouts
 ):
@@ -598,10 +613,10 @@ def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming
         run_rsft(rollout_config(RSFTConfig, output_dir=report.parent))
 
 
-def test_demos_of_a_world_without_an_expert_names_this_commands_flags():
+def test_demos_of_tasks_without_an_expert_names_this_commands_flags():
     """Issue 35, item 9: ``lerobot-cso demos --tasks=libero_*`` suggested ``--demos.dataset_root``, the pipeline's."""
     with pytest.raises(
-        UsageError, match="^libero has no scripted expert .* with --dataset_root=<its folder> --repo_id="
+        UsageError, match="^LIBERO's scripted expert does .* with --dataset_root=<its folder> --repo_id="
     ):
         DemosConfig(tasks="libero_goal-0").validate()
 
