@@ -88,6 +88,9 @@ PAST_LIMIT_RAD = math.radians(0.01)
 # Joint feedback that keeps arriving with the very same angles for this long while every command asks
 # for a move of at least FROZEN_MIN_MOVE_RAD counts as frozen (a stuck sender, a replayed capture).
 FROZEN_AFTER_S = 0.25
+# Feedback stamped this long after a reset was sent after the firmware acted on it (it handles host frames
+# within its 5 ms cycle): only such a frame showing a motor on proves the reset's countdown is still running.
+RESET_ACTED_WITHIN_S = 2 * FEEDBACK_PERIOD_S
 FROZEN_MIN_MOVE_RAD = 0.01
 # Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
 LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
@@ -300,7 +303,6 @@ class PiperDriver:
         self._operation = threading.RLock()
         self._disconnecting = False  # only the disconnect policy's own rest walk may command meanwhile
         self._reset_sent_at: float | None = None
-        self._enabled_before_reset = False
         self._may_be_high_follow = False
         # All on the monotonic clock the link stamps frames on. When the running (or last) enable() began.
         self._session_start = 0.0
@@ -694,13 +696,12 @@ class PiperDriver:
         """Wait until the firmware has switched the motors off after the newest reset: ours, another host's
         seen on the bus, or one inferred from standby with enable bits set. A newer foreign reset during the
         wait restarts the firmware's countdown, and the wait follows it. Motors still on ``reset_settle_s``
-        after a reset they should have gone off for is a failure (``EnableTimeoutError``); after an inferred
-        one it only shows there was none (a reset before we watched switches them off within ~0.73 s)."""
+        after a reset is a failure (``EnableTimeoutError``); after an inferred one it only shows there was
+        none (a reset before we watched switches them off within ~0.73 s)."""
         now = self.clock.monotonic()
         settle = self.config.reset_settle_s
         state = self.link.state()
-        target, enabled_before = self._reset_sent_at, self._enabled_before_reset
-        self._reset_sent_at = None
+        target, self._reset_sent_at = self._reset_sent_at, None
         inferred = False
         foreign = self._foreign_reset_since(self._resets_waited)
         if foreign is not None and (target is None or foreign > target):
@@ -710,7 +711,7 @@ class PiperDriver:
                     self.link.where,
                     now - foreign,
                 )
-                target, enabled_before = foreign, any(state.joints_enabled)
+                target = foreign
             else:  # long enough ago that its motor-off has happened
                 self._resets_waited = foreign
         if target is None:
@@ -723,15 +724,13 @@ class PiperDriver:
                 RESET_MOTOR_OFF_S,
                 settle,
             )
-            target, enabled_before, inferred = now, True, True
+            target, inferred = now, True
         guard = self._abort_on_estop(token, "the wait for a reset's motor-off")
         while True:
-            reset_at, motors_were_on = target, enabled_before
+            motor_off = _MotorOff(target)
 
-            def off_or_newer(s: ArmState, at: float = reset_at, on: bool = motors_were_on) -> bool:
-                # Motors on before the reset: the motor-off shows as enable bits going clear after it. Already
-                # off: nothing to observe, the delay itself is waited.
-                return self._foreign_reset_since(at) is not None or (on and _joints_disabled_since(s, at))
+            def off_or_newer(s: ArmState, at: float = target, off: _MotorOff = motor_off) -> bool:
+                return self._foreign_reset_since(at) is not None or off.seen(s)
 
             self._wait(guard, off_or_newer, max(target + settle - self.clock.monotonic(), 0.0))
             newer = self._foreign_reset_since(target)
@@ -743,8 +742,9 @@ class PiperDriver:
                 self.link.where,
                 newer - target,
             )
-            target, enabled_before, inferred = newer, any(self.link.state().joints_enabled), False
-        if enabled_before and not _joints_disabled_since(self.link.state(), target):
+            target, inferred = newer, False
+        state = self.link.state()
+        if any(state.joints_enabled) and not motor_off.seen(state):
             if inferred:
                 log.info("PiPER on %s: motors still on %.1f s on: no reset was pending", self.link.where, settle)
                 return
@@ -834,8 +834,6 @@ class PiperDriver:
         self._interlock.close(
             f"the arm was reset: its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later and stay off; call enable()"
         )
-        state = self.link.state()
-        self._enabled_before_reset = all(state.joints_enabled)
         sent_at = self.clock.monotonic()
         guard = self._abort_on_estop(token, "the reset")
         self._send(encode(EmergencyStop(EStopAction.RESUME)), guard=guard)
@@ -1103,6 +1101,24 @@ class PiperDriver:
         gripper = self.link.state().gripper
         opening = gripper.value.opening_m if gripper is not None else 0.0
         return self._gripper_frame(clamp(opening, *self.limits.gripper_m), code)
+
+
+class _MotorOff:
+    """Whether feedback shows the motor-off of the reset at ``reset_at``: some joint reported enabled in a frame
+    stamped ``RESET_ACTED_WITHIN_S`` after it, then every joint reported disabled after that frame. A reset
+    restarts the countdown, so a motor-off after a frame sent once the firmware acted on the reset is its own;
+    motors not seen on then show nothing (the delay itself must pass: a motor-off just before may be an
+    earlier reset's)."""
+
+    def __init__(self, reset_at: float) -> None:
+        self.after = reset_at + RESET_ACTED_WITHIN_S
+        self.on_at: float | None = None
+
+    def seen(self, state: ArmState) -> bool:
+        for info in state.low_speed:
+            if info is not None and info.timestamp > max(self.after, self.on_at or 0.0) and info.value.enabled:
+                self.on_at = info.timestamp
+        return self.on_at is not None and _joints_disabled_since(state, self.on_at)
 
 
 class _Restart(ArmNotReadyError):
