@@ -50,7 +50,7 @@ def tries(scratch: Path) -> list[Try]:
         Try("35", [cso, "eval", f"--config_path={scratch / 'broken.yaml'}"], "error: --config_path="),
         Try("36", [cso, "demos", f"--config_path={scratch / 'list.yaml'}"], "error: --config_path="),
         Try("36", [cso, "pipeline", f"--config_path={scratch / 'empty.yaml'}"], "error: --config_path="),
-        Try("44", [cso, "demos", "--tasks=libero_goal-0"], "error: libero has no scripted expert"),
+        Try("44", [cso, "demos", "--tasks=libero_goal-0"], "error: LIBERO's scripted expert does libero_object"),
         Try("27", [emulator, *virtual, "--initial-pose=nan,0,0,0,0,0"], "piper-emulator: error: argument --initial"),
         Try("27", [emulator, *virtual, "--rate-scale=nan"], "piper-emulator: error: argument --rate-scale"),
         Try("27", [emulator, *virtual, "--enable-latency-ms=-5"], "piper-emulator: error: argument --enable-latency"),

@@ -1,20 +1,24 @@
-"""``lerobot-cso demos``: scripted MetaWorld demonstrations → a LeRobotDataset v3.
+"""``lerobot-cso demos``: scripted demonstrations in a world that has an expert → a LeRobotDataset v3.
 
-Episode ``i`` of a task starts from initial state ``seeds.DEMO.start + i`` and is driven by the task's scripted
-expert plus Gaussian action noise (σ = ``noise_std``, QueST: 0.2) drawn from a generator seeded by
+The expert is the world's (``--world.type``, else the world whose tasks ``--tasks`` names; a
+:class:`~lerobot_cso.worlds.base.DemoExpert`): MetaWorld's ``metaworld.policies``, LIBERO's pick-and-place
+expert (:mod:`lerobot_cso.worlds.libero.expert`), or a third party's world's own. Episode ``i`` of a task starts
+from the expert's ``demo_states[i]`` (MetaWorld: ``seeds.DEMO.start + i``; LIBERO: a placement drawn from
+``seeds.DEMO_PLACEMENTS.start + i``, never a fixed evaluation state) and is driven by the expert plus Gaussian
+action noise (σ = ``noise_std``; unset: the expert's, MetaWorld 0.2 as QueST) drawn from a generator seeded by
 ``(seed, task, init_seed)``; it ends at the first success or after ``max_steps``. The same config therefore
 gives the same dataset, bit for bit, however the work is split over envs or interrupted. With
 ``keep_failed=false`` failed episodes are dropped and the next seeds are tried until each task has
 ``episodes_per_task`` successes.
 
-Features: ``observation.state`` (float32; the ``state`` layout of
-:data:`~lerobot_cso.worlds.metaworld.constants.STATE_LAYOUTS`: the full 39-d state by default, ``proprio`` for
-QueST's 8-d camera setting — the expert always reads the full state, the dataset keeps the layout's part),
-``action`` (4, float32, as executed), optional ``observation.images.<camera>`` (``image_size``², PNG ``image``),
-``task`` = the task's language description, and per-frame episode metadata that LeRobot's tools carry along:
-``metaworld.task`` (task name), ``metaworld.init_seed`` and ``metaworld.success`` (the episode's outcome). The
-episode length is LeRobot's own ``length``. The generation settings are kept in ``meta/cso_demos.json``; a run on a
-dir holding a dataset made with other settings, or anything else, is refused.
+Features: ``observation.state`` (float32; the ``state`` layout: MetaWorld's full 39-d state by default,
+``proprio`` for QueST's 8-d camera setting, ``hand`` for LeRobot's 4-d — the expert always reads what it needs,
+the dataset keeps the layout's part; LIBERO's 8-d), ``action`` (float32, as executed), optional
+``observation.images.<camera>`` (``image_size``², PNG ``image``), ``task`` = the task's language description, and
+per-frame episode metadata that LeRobot's tools carry along: ``<world>.task`` (task name), ``<world>.init_seed`` and
+``<world>.success`` (the episode's outcome). The episode length is LeRobot's own ``length``. The generation settings
+are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other settings, or anything else, is
+refused.
 
 **An existing dataset instead** (``dataset_root``, with its ``repo_id``): for a world without a scripted expert
 (LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
@@ -31,6 +35,7 @@ already staged or already in the dataset (matched by task and initial-state seed
 duplicated.
 """
 
+import dataclasses
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -45,7 +50,6 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
-from lerobot_cso import seeds
 from lerobot_cso.durable import (
     EpisodeJournal,
     output_lock,
@@ -56,17 +60,15 @@ from lerobot_cso.durable import (
 )
 from lerobot_cso.errors import UsageError, check_number, check_output_dir, interruptible
 from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec, without_added_settings
-from lerobot_cso.worlds.base import SimWorld, camera_inputs
-from lerobot_cso.worlds.metaworld.constants import ACTION_DIM, CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
-from lerobot_cso.worlds.metaworld.env import select_state
+from lerobot_cso.worlds.base import DemoExpert, SimWorld, WorldConfig, camera_inputs
 from lerobot_cso.worlds.metaworld.env_config import parse_cameras
-from lerobot_cso.worlds.metaworld.tasks import task_description
 from lerobot_cso.worlds.registry import default_world
 
 SPEC_FILE = "meta/cso_demos.json"
-TASK_KEY = "metaworld.task"
-SEED_KEY = "metaworld.init_seed"
-SUCCESS_KEY = "metaworld.success"
+BRING_A_DATASET = (
+    "give a LeRobotDataset of its tasks with --dataset_root=<its folder> --repo_id=<its repo id> "
+    "(in the pipeline: --demos.dataset_root, --demos.repo_id)"
+)
 MAX_ATTEMPTS_PER_EPISODE = 20  # with keep_failed=false: give up on a task after this many tries per episode
 
 
@@ -74,37 +76,66 @@ MAX_ATTEMPTS_PER_EPISODE = 20  # with keep_failed=false: give up on a task after
 class DemosConfig:
     """Settings of ``lerobot-cso demos`` (``--tasks=MT10 --episodes_per_task=10 --output_dir=...``)."""
 
-    # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test.
+    # The world whose expert makes the demos (--world.type=metaworld|libero); null: the world --tasks names.
+    world: WorldConfig | None = None
+    # One task, a comma list, or a set: MT10, MT50, ML45-train, ML45-test; libero_object, libero_object-3, ...
     tasks: str = "ML45-train"
     episodes_per_task: int = 100
-    noise_std: float = 0.2
+    # Std of the Gaussian noise added to the expert's actions; null: the world's (MetaWorld 0.2, LIBERO 0.05).
+    noise_std: float | None = None
     seed: int = 0
     keep_failed: bool = True
-    # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU).
+    # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU). MetaWorld:
+    # corner, corner2, ..., gripperPOV; LIBERO: image (agentview), image2 (wrist).
     cameras: str = ""
-    image_size: int = IMAGE_SIZE
-    # What observation.state holds: full (39-d, object and goal positions), proprio (QueST's 8-d hand + gripper,
-    # now and one frame before; with a camera the policy must find the objects in the image), hand (LeRobot's 4-d).
+    # Side of the camera images; null: the world's (MetaWorld 128, LIBERO 128).
+    image_size: int | None = None
+    # What observation.state holds. MetaWorld: full (39-d, object and goal positions), proprio (QueST's 8-d hand +
+    # gripper, now and one frame before; with a camera the policy must find the objects in the image), hand
+    # (LeRobot's 4-d). LIBERO: full (its 8-d eef position, axis-angle and gripper joints: what LeRobot's has).
     state: str = "full"
-    max_steps: int = HORIZON
+    # Episode cap; null: the world's horizon (MetaWorld 500; LIBERO its suite's, e.g. 280 for libero_object).
+    max_steps: int | None = None
     num_envs: int = 4
     output_dir: Path = Path("outputs/demos/metaworld")
     repo_id: str = "local/metaworld_demos"
-    # An existing LeRobotDataset (the dataset repo_id, in this folder) to use instead of generating demos; the
-    # only way for LIBERO, which has no scripted expert. The generation settings above are then unused.
+    # An existing LeRobotDataset (the dataset repo_id, in this folder) to use instead of generating demos, for a
+    # world without a scripted expert or a user's own data. The generation settings above are then unused.
     dataset_root: Path | None = None
+
+    def world_settings(self) -> WorldConfig:
+        return self.world if self.world is not None else default_world(self.tasks)
+
+    def expert(self) -> DemoExpert:
+        """The world's demo expert; ``UsageError`` for a world without one."""
+        settings = self.world_settings()
+        expert = settings.demo_expert()
+        if expert is None:
+            raise UsageError(f"{settings.type} has no scripted expert to generate demos: {BRING_A_DATASET}")
+        return expert
+
+    def resolved(self) -> "DemosConfig":
+        """These settings with the unset ones (null) taken from the world's expert."""
+        expert, tasks = self.expert(), self.validate()
+        return dataclasses.replace(
+            self,
+            noise_std=expert.noise_std if self.noise_std is None else self.noise_std,
+            image_size=expert.image_size if self.image_size is None else self.image_size,
+            max_steps=expert.horizon(tasks) if self.max_steps is None else self.max_steps,
+        )
 
     def spec(self) -> dict[str, Any]:
         """The settings that determine episode content: a dataset only ever grows under one spec."""
+        cfg = self.resolved()
         return {
-            "noise_std": self.noise_std,
-            "seed": self.seed,
-            "keep_failed": self.keep_failed,
-            "cameras": list(parse_cameras(self.cameras)),
-            "image_size": self.image_size,
-            "state": self.state,
-            "max_steps": self.max_steps,
-            "fps": FPS,
+            "noise_std": cfg.noise_std,
+            "seed": cfg.seed,
+            "keep_failed": cfg.keep_failed,
+            "cameras": list(parse_cameras(cfg.cameras)),
+            "image_size": cfg.image_size,
+            "state": cfg.state,
+            "max_steps": cfg.max_steps,
+            "fps": self.expert().fps,
         }
 
     def validate(self) -> list[str]:
@@ -112,28 +143,28 @@ class DemosConfig:
         if self.dataset_root is not None:
             return check_dataset(self)[0]
         check_output_dir(self.output_dir)
-        settings = default_world(self.tasks)
-        world = settings.build(self.tasks, None, None)
+        world = self.world_settings().build(self.tasks, None, None)
         tasks = _resolve(world, self.tasks)
-        if not settings.scripted_demos:
-            raise UsageError(
-                f"{world.name} has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
-                "--dataset_root=<its folder> --repo_id=<its repo id>, e.g. lerobot/libero_spatial (in the pipeline: "
-                "--demos.dataset_root, --demos.repo_id)"
-            )
+        expert = self.expert()
+        try:
+            expert.check_tasks(tasks)
+        except ValueError as e:
+            raise UsageError(f"{e}: {BRING_A_DATASET}") from None
         if self.episodes_per_task <= 0:
             raise UsageError(f"episodes_per_task must be > 0, got {self.episodes_per_task}")
-        check_number("noise_std", self.noise_std, ge=0)
-        if not 1 <= self.max_steps <= HORIZON:
-            raise UsageError(f"max_steps must be in [1, {HORIZON}], got {self.max_steps}")
+        if self.noise_std is not None:
+            check_number("noise_std", self.noise_std, ge=0)
+        horizon = expert.horizon(tasks)
+        if self.max_steps is not None and not 1 <= self.max_steps <= horizon:
+            raise UsageError(f"max_steps must be in [1, {horizon}], got {self.max_steps}")
         if self.num_envs < 1:
             raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
-        unknown = [c for c in parse_cameras(self.cameras) if c not in CAMERAS]
+        unknown = [c for c in parse_cameras(self.cameras) if c not in expert.cameras]
         if unknown:
-            raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(CAMERAS)}")
-        if self.state not in STATE_LAYOUTS:
-            raise UsageError(f"state must be one of {', '.join(STATE_LAYOUTS)}, got {self.state!r}")
-        if parse_cameras(self.cameras) and not 16 <= self.image_size <= 512:
+            raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(expert.cameras)}")
+        if self.state not in expert.states:
+            raise UsageError(f"state must be one of {', '.join(expert.states)}, got {self.state!r}")
+        if parse_cameras(self.cameras) and self.image_size is not None and not 16 <= self.image_size <= 512:
             raise UsageError(f"image_size must be in [16, 512], got {self.image_size}")
         return tasks
 
@@ -148,7 +179,7 @@ def _resolve(world: SimWorld, spec: str) -> list[str]:
 def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     """The tasks of ``cfg`` and the metadata of the dataset at ``cfg.dataset_root``, checked to fit each other
     and the tasks' world. Raises ``UsageError``."""
-    world = default_world(cfg.tasks).build(cfg.tasks, None, None)
+    world = cfg.world_settings().build(cfg.tasks, None, None)
     tasks = _resolve(world, cfg.tasks)
     root = cfg.dataset_root
     try:
@@ -177,14 +208,20 @@ def check_dataset(cfg: DemosConfig) -> tuple[list[str], LeRobotDatasetMetadata]:
     return tasks, meta
 
 
-def dataset_features(cameras: Iterable[str], image_size: int, state: str = "full") -> dict[str, dict]:
+def metadata_keys(expert: DemoExpert) -> tuple[str, str, str]:
+    """The per-frame columns naming an episode's task, initial state and outcome."""
+    return f"{expert.prefix}.task", f"{expert.prefix}.init_seed", f"{expert.prefix}.success"
+
+
+def dataset_features(expert: DemoExpert, cameras: Iterable[str], image_size: int, state: str) -> dict[str, dict]:
     """LeRobotDataset features of a demo dataset."""
+    task_key, seed_key, success_key = metadata_keys(expert)
     features: dict[str, dict] = {
-        "observation.state": {"dtype": "float32", "shape": (STATE_LAYOUTS[state],), "names": None},
-        "action": {"dtype": "float32", "shape": (ACTION_DIM,), "names": ["dx", "dy", "dz", "gripper"]},
-        TASK_KEY: {"dtype": "string", "shape": (1,), "names": None},
-        SEED_KEY: {"dtype": "int64", "shape": (1,), "names": None},
-        SUCCESS_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+        "observation.state": {"dtype": "float32", "shape": (expert.state_dim(state),), "names": None},
+        "action": {"dtype": "float32", "shape": (len(expert.action_names),), "names": expert.action_names},
+        task_key: {"dtype": "string", "shape": (1,), "names": None},
+        seed_key: {"dtype": "int64", "shape": (1,), "names": None},
+        success_key: {"dtype": "bool", "shape": (1,), "names": None},
     }
     for cam in cameras:
         features[f"observation.images.{cam}"] = {
@@ -225,16 +262,18 @@ def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
             f"{out} holds a different dataset (setting: (on disk, requested) = {diff}); choose another --output_dir"
         )
     ds = LeRobotDataset(cfg.repo_id, root=out, video_backend="pyav")
-    table = ds.hf_dataset.select_columns(["episode_index", TASK_KEY, SEED_KEY, SUCCESS_KEY]).to_pandas()
-    firsts = table.drop_duplicates("episode_index")
+    keys = metadata_keys(cfg.expert())
+    firsts = ds.hf_dataset.select_columns(["episode_index", *keys]).to_pandas().drop_duplicates("episode_index")
     return {
         (task, int(np.asarray(seed).reshape(-1)[0])): bool(np.asarray(ok).reshape(-1)[0])
-        for task, seed, ok in zip(firsts[TASK_KEY], firsts[SEED_KEY], firsts[SUCCESS_KEY], strict=True)
+        for task, seed, ok in zip(*(firsts[key] for key in keys), strict=True)
     }
 
 
-def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[str, int], bool]) -> list[tuple]:
-    """The next (task, init_seed) to run: per task, the lowest demo seeds not run yet, enough to fill it."""
+def _plan(
+    tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[str, int], bool], states: range
+) -> list[tuple]:
+    """The next (task, init_seed) to run: per task, the lowest demo states not run yet, enough to fill it."""
     jobs = []
     for task in tasks:
         tried = sorted(s for t, s in known if t == task)
@@ -247,7 +286,7 @@ def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[
                 f"the {task} expert succeeded in only {kept} of {len(tried)} episodes; "
                 f"use --keep_failed=true or fewer --episodes_per_task"
             )
-        candidates = (s for s in seeds.DEMO if (task, s) not in known)
+        candidates = (s for s in states if (task, s) not in known)
         jobs.extend((task, next(candidates)) for _ in range(missing))
     return jobs
 
@@ -255,13 +294,11 @@ def _plan(tasks: list[str], per_task: int, keep_failed: bool, known: dict[tuple[
 def _generate(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, known: dict[tuple[str, int], bool]) -> None:
     """Run episodes until every task has its count (staged + in the dataset); each one is staged at once."""
     from lerobot_cso.rollout.backend import Job
-    from lerobot_cso.worlds.metaworld.expert import ExpertController
-    from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
-    cameras = parse_cameras(cfg.cameras)
-    with metaworld_pool(cfg.num_envs, cameras, cfg.image_size, cfg.max_steps) as pool:
-        while jobs := _plan(tasks, cfg.episodes_per_task, cfg.keep_failed, known):
-            controller = ExpertController(cfg.num_envs, cfg.noise_std, cfg.seed)
+    expert = cfg.expert()
+    with expert.pool(cfg.num_envs, parse_cameras(cfg.cameras), cfg.image_size, cfg.max_steps) as pool:
+        while jobs := _plan(tasks, cfg.episodes_per_task, cfg.keep_failed, known, expert.demo_states):
+            controller = expert.controller(cfg.num_envs, cfg.noise_std, cfg.seed)
             for _, trace in pool.run([Job(t, s) for t, s in jobs], controller, progress="demo episodes"):
                 arrays = {"success": np.array(trace.success), "states": trace.states, "actions": trace.actions}
                 arrays.update({f"image_{cam}": frames for cam, frames in trace.images.items()})
@@ -281,6 +318,9 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
     if not keys:
         return 0
     cameras = parse_cameras(cfg.cameras)
+    expert = cfg.expert()
+    task_key, seed_key, success_key = metadata_keys(expert)
+    describe = cfg.world_settings().build(cfg.tasks, None, None).task_description
     work = staging.root / "dataset"
     if work.exists():
         shutil.rmtree(work)  # an assembly that was interrupted: redo it
@@ -291,10 +331,10 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
     else:
         ds = LeRobotDataset.create(
             cfg.repo_id,
-            FPS,
-            dataset_features(cameras, cfg.image_size, cfg.state),
+            expert.fps,
+            dataset_features(expert, cameras, cfg.image_size, cfg.state),
             root=work,
-            robot_type="sawyer",
+            robot_type=expert.robot_type,
             use_videos=False,
             video_backend="pyav",
             image_writer_threads=writer_threads,
@@ -305,15 +345,15 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
         for task, init_seed in tqdm(keys, desc="writing dataset", leave=False):
             ep = staging.load(staging.episode_path(task, f"{init_seed:07d}"))
             meta = {
-                TASK_KEY: task,
-                SEED_KEY: np.array([init_seed], dtype=np.int64),
-                SUCCESS_KEY: np.array([bool(ep["success"])]),
+                task_key: task,
+                seed_key: np.array([init_seed], dtype=np.int64),
+                success_key: np.array([bool(ep["success"])]),
             }
             for t in range(len(ep["actions"])):
                 frame = {
-                    "observation.state": select_state(ep["states"][t], cfg.state),
+                    "observation.state": expert.dataset_state(ep["states"][t], cfg.state),
                     "action": ep["actions"][t],
-                    "task": task_description(task),
+                    "task": describe(task),
                 }
                 frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
                 ds.add_frame({**frame, **meta})
@@ -330,6 +370,7 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
 def generate_demos(cfg: DemosConfig) -> dict[str, Any]:
     """Generate (or resume / top up) the demo dataset; returns a summary per task."""
     tasks = cfg.validate()
+    cfg = cfg.resolved()
     restore_interrupted_replace(cfg.output_dir)
     in_dataset = existing_episodes(cfg)
     staging = _staging(cfg)
@@ -365,7 +406,8 @@ class DemosStage:
 
     def spec(self) -> dict[str, Any]:
         # num_envs only splits the work: the dataset is the same bit for bit.
-        return {"tasks": self.cfg.validate(), "demos": settings_spec(self.cfg, exclude=(*PIPELINE_FIELDS, "num_envs"))}
+        cfg = self.cfg.resolved()
+        return {"tasks": cfg.validate(), "demos": settings_spec(cfg, exclude=(*PIPELINE_FIELDS, "num_envs"))}
 
     def output(self) -> Path:
         return self.cfg.output_dir

@@ -142,7 +142,9 @@ class Pipeline:
 
     # Stage configs, with the propagated fields filled in.
     def demos_config(self) -> DemosConfig:
-        return dataclasses.replace(self.cfg.demos, tasks=self.cfg.tasks, output_dir=self.out / "demos")
+        return dataclasses.replace(
+            self.cfg.demos, world=self.cfg.world, tasks=self.cfg.tasks, output_dir=self.out / "demos"
+        )
 
     def eval_config(self, name: str, policy: PreTrainedConfig) -> EvalConfig:
         return dataclasses.replace(

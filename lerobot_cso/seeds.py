@@ -11,6 +11,9 @@ demo       [0, 1_000_000)               episode ``i`` of a task's demos starts f
 train      [1_000_000, 2_000_000)       online rollouts: R-SFT draws from the first half, SPO from the second
 eval       [2_000_000, 3_000_000)       evaluation: seed ``s`` owns the block of ``EVAL_BLOCK`` states
                                         starting at ``EVAL.start + s * EVAL_BLOCK``
+demo       [3_000_000, 4_000_000)       demonstrations in a world whose small integers are its fixed
+(placed)                                evaluation states (LIBERO): episode ``i`` starts from
+                                        ``DEMO_PLACEMENTS.start + i``, a placement drawn from that seed
 =========  ===========================  ==============================================================
 
 LeRobot's own tools (``lerobot-eval``, ``lerobot-train --env_eval_freq``) pass small seeds
@@ -23,6 +26,7 @@ from __future__ import annotations
 DEMO = range(0, 1_000_000)
 TRAIN = range(1_000_000, 2_000_000)
 EVAL = range(2_000_000, 3_000_000)
+DEMO_PLACEMENTS = range(3_000_000, 4_000_000)
 EVAL_BLOCK = 10_000
 TRAINING_OFFSETS = {"rsft": 0, "spo": len(TRAIN) // 2}  # each purpose's half of the training range
 

@@ -39,7 +39,7 @@ from lerobot_cso import seeds
 from lerobot_cso.cli import main
 from lerobot_cso.cso.rsft import RSFTConfig
 from lerobot_cso.cso.spo import SPOConfig
-from lerobot_cso.demos import DemosConfig
+from lerobot_cso.demos import DemosConfig, generate_demos
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.il import ILConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, run_pipeline
@@ -203,6 +203,36 @@ def test_decision_only_rendering_gives_the_same_decision_frames(env):
         np.testing.assert_array_equal(seen, every[t]["pixels"]["image"])
 
 
+def test_the_expert_picks_and_places_into_a_dataset_in_lerobots_libero_layout(tmp_path):
+    """LIBERO-Object's scripted expert (issue 54) succeeds from a training placement within the suite's horizon,
+    through the demos stage, and its demos are a LeRobot LIBERO dataset: agentview and wrist cameras as LeRobot
+    names them, the 8-d state, the 7-d action, the task's instruction; the expert's privileged view is not in it."""
+    out, repo = tmp_path / "demos", "local/libero_object_demos"
+    cfg = DemosConfig(
+        tasks="libero_object-0", episodes_per_task=1, keep_failed=False, cameras="image,image2", image_size=IMAGE,
+        num_envs=1, output_dir=out, repo_id=repo,
+    )  # fmt: skip
+    summary = generate_demos(cfg)
+    assert summary["tasks"]["libero_object-0"] == {"episodes": 1, "expert_success_rate": 1.0}
+    ds = LeRobotDataset(repo, root=out)
+    assert (ds.meta.robot_type, ds.fps, ds.num_episodes) == ("panda", 20, 1)
+    shapes = {key: tuple(ft["shape"]) for key, ft in ds.features.items() if key.startswith(("observation", "action"))}
+    assert shapes == {
+        "observation.images.image": (IMAGE, IMAGE, 3),
+        "observation.images.image2": (IMAGE, IMAGE, 3),
+        "observation.state": (8,),
+        "action": (7,),
+    }
+    assert 20 < ds.num_frames < libero_env.max_steps("libero_object-0")  # it succeeded before the horizon
+    first, last = ds[0], ds[ds.num_frames - 1]
+    assert first["task"] == "pick up the alphabet soup and place it in the basket"
+    assert int(first["libero.init_seed"]) == seeds.DEMO_PLACEMENTS.start  # a training placement, not a fixed state
+    assert first["libero.success"]
+    gripper = np.asarray(ds.hf_dataset.with_format("numpy")["action"])[:, 6]
+    assert gripper[0] < 0 and (gripper > 0).sum() > 10  # starts open, then closes on the object for a while
+    assert not np.allclose(first["observation.state"][:3], last["observation.state"][:3], atol=0.05)  # it moved
+
+
 @pytest.fixture(scope="module")
 def tiny_dataset(env, tmp_path_factory) -> Path:
     return record_libero_dataset(env, tmp_path_factory.mktemp("libero") / "tiny", episodes=2, steps=16)
@@ -290,8 +320,8 @@ def test_pipeline_on_libero_without_a_fitting_dataset_is_one_error_line(
     monkeypatch.setattr(sys, "argv", list(sys.argv))  # the CLI hands its arguments to the parser via sys.argv
     given = [f"--demos.dataset_root={tiny_dataset}", f"--demos.repo_id={REPO_ID}"]
     cases = [
-        ([], "libero has no scripted expert to generate demos: give a LeRobotDataset of its tasks with "
-             "--dataset_root=<its folder> --repo_id=<its repo id>, e.g. lerobot/libero_spatial (in the pipeline: "
+        ([], "LIBERO's scripted expert does libero_object (pick and place), not libero_goal-0: give a LeRobotDataset "
+             "of its tasks with --dataset_root=<its folder> --repo_id=<its repo id> (in the pipeline: "
              "--demos.dataset_root, --demos.repo_id)"),
         (["--demos.dataset_root=/nonexistent/libero", f"--demos.repo_id={REPO_ID}"],
          f"/nonexistent/libero holds no LeRobotDataset and {REPO_ID} could not be fetched"),

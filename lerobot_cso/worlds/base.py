@@ -14,16 +14,17 @@ imports every one at start-up) whose module registers ``@WorldConfig.register_su
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Protocol
 
 import draccus
+import numpy as np
 from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
 
 from lerobot_cso.errors import UsageError
-from lerobot_cso.rollout.backend import RolloutBackend
+from lerobot_cso.rollout.backend import Controller, RolloutBackend
 from lerobot_cso.rollout.pool import Frames
 
 Purpose = Literal["rsft", "spo"]
@@ -78,12 +79,49 @@ class SimWorld(World, Protocol):
     cameras: tuple[str, ...]  # the cameras its envs render (observation.images.<camera>)
 
 
+class DemoExpert(Protocol):
+    """A world's scripted expert, and the demonstration dataset ``lerobot-cso demos`` makes with it: the envs it
+    drives (which may show it the simulator's true state; the dataset keeps only what a policy reads), the
+    controller, and the dataset's layout. Its defaults fill the demo settings left unset."""
+
+    prefix: str  # per-frame metadata columns <prefix>.task, <prefix>.init_seed, <prefix>.success
+    fps: int
+    robot_type: str
+    action_names: list[str]
+    cameras: tuple[str, ...]  # the cameras its envs can render
+    states: tuple[str, ...]  # the state layouts its datasets can hold (the first is the default)
+    noise_std: float  # default action noise
+    image_size: int  # default camera resolution
+    demo_states: range  # episode i of a task starts from demo_states[i]: never a training or evaluation state
+
+    def check_tasks(self, tasks: list[str]) -> None:
+        """``ValueError`` naming the tasks among ``tasks`` the expert cannot do."""
+
+    def horizon(self, tasks: list[str]) -> int:
+        """The longest episode the expert may take on ``tasks`` (the default and upper bound of ``max_steps``)."""
+
+    def state_dim(self, state: str) -> int:
+        """The size of ``observation.state`` under layout ``state``."""
+
+    def dataset_state(self, state: np.ndarray, layout: str) -> np.ndarray:
+        """The dataset's ``observation.state`` of a recorded env state."""
+
+    def pool(self, num_envs: int, cameras: Sequence[str], image_size: int, max_steps: int) -> RolloutBackend:
+        """Envs showing the expert what it needs, rendering ``cameras``."""
+
+    def controller(self, num_envs: int, noise_std: float, seed: int) -> Controller:
+        """The expert for ``num_envs`` slots; episode noise seeded by ``(seed, task, init_seed)``."""
+
+
 @dataclass
 class WorldConfig(draccus.ChoiceRegistry, abc.ABC):
     """``--world.type=<name>`` and the world's own settings (``--world.*``)."""
 
     simulated: ClassVar[bool] = True  # False: a real one (its cameras give every frame; no ablations on it)
-    scripted_demos: ClassVar[bool] = False  # it has a scripted expert: lerobot-cso demos generates its demos
+
+    def demo_expert(self) -> DemoExpert | None:
+        """The world's scripted expert (``lerobot-cso demos`` generates its demos), or None."""
+        return None
 
     @property
     def type(self) -> str:

@@ -5,15 +5,16 @@ initial state is an integer:
 
 - ``0 <= state < 50``: the benchmark's fixed init state of that index (what evaluation uses, as LIBERO and
   QueST do; LeRobot's ``LiberoEnv`` restores it);
-- ``state >= 1_000_000`` (the online-training ranges of :mod:`lerobot_cso.seeds`): a fresh placement drawn
-  from the task's BDDL regions with ``np.random.seed(state)`` — the same state for the same integer, and never
-  one of the evaluation states.
+- ``state >= 1_000_000`` (the online-training and placed-demo ranges of :mod:`lerobot_cso.seeds`): a fresh
+  placement drawn from the task's BDDL regions with ``np.random.seed(state)`` — the same state for the same
+  integer, and never one of the evaluation states.
 
 Observations follow the engine's gym format: ``agent_pos`` is LeRobot's 8-d LIBERO state (eef position,
 eef axis-angle, two gripper joints, as ``LiberoProcessorStep`` builds it) and ``pixels`` holds the requested
 cameras (``image``: agentview, ``image2``: wrist, LeRobot's names) turned 180° as LeRobot's LIBERO datasets
-store them. Episodes, parking and the render cadence are the pool's env protocol,
-:class:`~lerobot_cso.rollout.env.PoolEnv`.
+store them. An env built with ``expert=True`` (for scripted demos) also observes ``expert``: the simulator's
+true state the expert reads (:func:`~lerobot_cso.worlds.libero.expert.expert_view`), never stored in a dataset.
+Episodes, parking and the render cadence are the pool's env protocol, :class:`~lerobot_cso.rollout.env.PoolEnv`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import torch
 from gymnasium import spaces
 
 from lerobot_cso.rollout.env import PoolEnv
+from lerobot_cso.worlds.libero.expert import VIEW_DIM, expert_view
 from lerobot_cso.worlds.libero.setup import configure
 
 configure()  # before any libero import, in every process that unpickles a LIBERO env
@@ -116,6 +118,7 @@ class CSOLiberoEnv(PoolEnv):
         cameras: Sequence[str] = (),
         image_size: int = IMAGE_SIZE,
         max_episode_steps: int | None = None,
+        expert: bool = False,
     ) -> None:
         super().__init__()
         unknown = [c for c in cameras if c not in CAMERAS]
@@ -127,6 +130,7 @@ class CSOLiberoEnv(PoolEnv):
         self.max_episode_steps = max_episode_steps
         self.render_mode = "rgb_array"
         self.task = task
+        self.expert = expert
         self._env: _FrameSkippingLiberoEnv | None = None
         self._env_task: str | None = None
         self._to_state = LiberoProcessorStep()
@@ -134,6 +138,8 @@ class CSOLiberoEnv(PoolEnv):
         if self.cameras:
             image = spaces.Box(0, 255, (image_size, image_size, 3), dtype=np.uint8)
             obs_spaces["pixels"] = spaces.Dict({cam: image for cam in self.cameras})
+        if expert:
+            obs_spaces["expert"] = spaces.Box(-np.inf, np.inf, (VIEW_DIM,), np.float32)
         self.observation_space = spaces.Dict(obs_spaces)
         self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), dtype=np.float32)
 
@@ -175,6 +181,8 @@ class CSOLiberoEnv(PoolEnv):
         obs: dict[str, Any] = {"agent_pos": state.numpy().astype(np.float32)}
         if self.cameras:
             obs["pixels"] = {cam: np.ascontiguousarray(raw["pixels"][cam][::-1, ::-1]) for cam in self.cameras}
+        if self.expert:
+            obs["expert"] = expert_view(self._libero()._env.env)
         return obs
 
     def _set_task(self, task: str) -> None:

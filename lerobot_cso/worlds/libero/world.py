@@ -29,7 +29,7 @@ from typing import Any
 from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import open_pool
-from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, image_size_of
+from lerobot_cso.worlds.base import DemoExpert, Purpose, Rollouts, WorldConfig, image_size_of
 
 SUITE_PREFIX = "libero_"
 EVAL_SEEDS = 3  # the paper's three evaluation seeds
@@ -129,6 +129,12 @@ class LiberoConfig(WorldConfig):
         """Whether a ``--tasks`` spec names LIBERO tasks (checked without importing LIBERO)."""
         items = [t.strip() for t in tasks.split(",") if t.strip()]
         return bool(items) and all(t.startswith(SUITE_PREFIX) for t in items)
+
+    def demo_expert(self) -> DemoExpert:
+        """The pick-and-place expert (expert.py)."""
+        from lerobot_cso.worlds.libero.expert import LiberoDemos
+
+        return LiberoDemos()
 
     def build(self, tasks: str, policy: Any, output_dir: Path | None) -> Libero:
         return Libero(tasks)

@@ -1,4 +1,5 @@
-"""Scripted MetaWorld experts (``metaworld.policies``) with Gaussian action noise, as a pool controller.
+"""Scripted MetaWorld experts (``metaworld.policies``) with Gaussian action noise, as a pool controller, and the
+world's demo expert (:class:`MetaWorldDemos`: the dataset ``lerobot-cso demos`` makes with them).
 
 The noise of an episode is drawn from its own generator, seeded by ``(seed, task, init_seed)``, so an
 episode's actions do not depend on which slot runs it or on what ran before: the same seed gives the same
@@ -8,12 +9,17 @@ demonstrations, whatever the number of envs and however often generation was int
 from __future__ import annotations
 
 import zlib
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from metaworld.policies import ENV_POLICY_MAP
 
+from lerobot_cso import seeds
+from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Job
+from lerobot_cso.worlds.metaworld.constants import CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.env import select_state
 
 
 class ExpertController:
@@ -44,3 +50,39 @@ class ExpertController:
 
     def current_skill(self, slot: int) -> None:
         return None  # an expert acts step by step, not by skills
+
+
+class MetaWorldDemos:
+    """MetaWorld's demo expert (:class:`~lerobot_cso.worlds.base.DemoExpert`): the expert reads the full 39-d
+    state; the dataset keeps the part its state layout names (``full``, QueST's 8-d ``proprio``, LeRobot's 4-d
+    ``hand``)."""
+
+    prefix = "metaworld"
+    fps = FPS
+    robot_type = "sawyer"
+    action_names = ["dx", "dy", "dz", "gripper"]
+    cameras = CAMERAS
+    states = tuple(STATE_LAYOUTS)
+    noise_std = 0.2  # QueST's
+    image_size = IMAGE_SIZE
+    demo_states = seeds.DEMO
+
+    def check_tasks(self, tasks: list[str]) -> None:
+        """Every MetaWorld task has its expert."""
+
+    def horizon(self, tasks: list[str]) -> int:
+        return HORIZON
+
+    def state_dim(self, state: str) -> int:
+        return STATE_LAYOUTS[state]
+
+    def dataset_state(self, state: np.ndarray, layout: str) -> np.ndarray:
+        return select_state(state, layout)
+
+    def pool(self, num_envs: int, cameras: Sequence[str], image_size: int, max_steps: int) -> RolloutBackend:
+        from lerobot_cso.worlds.metaworld.world import pool
+
+        return pool(num_envs, cameras, image_size, max_steps)
+
+    def controller(self, num_envs: int, noise_std: float, seed: int) -> ExpertController:
+        return ExpertController(num_envs, noise_std, seed)

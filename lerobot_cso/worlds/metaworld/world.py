@@ -11,14 +11,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 from lerobot.utils.constants import OBS_STATE
 
 from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Frames, open_pool
-from lerobot_cso.worlds.base import Purpose, Rollouts, WorldConfig, camera_inputs, image_size_of
+from lerobot_cso.worlds.base import DemoExpert, Purpose, Rollouts, WorldConfig, camera_inputs, image_size_of
 from lerobot_cso.worlds.metaworld.constants import (
     ACTION_DIM,
     CAMERAS,
@@ -113,7 +113,11 @@ class MetaWorld:
 class MetaWorldConfig(WorldConfig):
     """MetaWorld v3 (``--tasks``: a task, a comma list, MT10, MT50, ML45-train, ML45-test)."""
 
-    scripted_demos: ClassVar[bool] = True  # metaworld.policies' experts (expert.py)
+    def demo_expert(self) -> DemoExpert:
+        """metaworld.policies' experts (expert.py)."""
+        from lerobot_cso.worlds.metaworld.expert import MetaWorldDemos
+
+        return MetaWorldDemos()
 
     def build(self, tasks: str, policy: Any, output_dir: Path | None) -> MetaWorld:
         return MetaWorld()
