@@ -9,8 +9,8 @@
   records (demos, R-SFT collection, real-arm rollouts). A journal made with other settings is refused.
 * :class:`ResumableState`: a directory (checkpoint files plus ``progress.json``) replaced as a whole after
   each unit of work (an SPO iteration, an R-SFT epoch).
-* :func:`output_lock`: one writer per output directory (a second run is refused, the first one named); the lock
-  dies with its process, so ``kill -9`` leaves nothing to clean up.
+* :func:`output_lock`: one writer per output directory, symbolic links resolved, and none inside another's (a second
+  run is refused, the first one named); the lock dies with its process, so ``kill -9`` leaves nothing to clean up.
 """
 
 from __future__ import annotations
@@ -98,7 +98,16 @@ def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 
 def replace_dir(src: Path, dst: Path) -> None:
-    """Move directory ``src`` to ``dst``, replacing it; a crash leaves either the old or the new one."""
+    """Move directory ``src`` to ``dst``, replacing it; a crash leaves either the old or the new one. A ``dst`` that
+    is a symbolic link stays one: the directory it names is replaced (``src`` moved beside that one first)."""
+    if dst.is_symlink():
+        real = Path(os.path.realpath(dst))
+        if src.resolve().parent != real.parent:
+            beside = real.with_name(real.name + ".tmp")
+            shutil.rmtree(beside, ignore_errors=True)
+            shutil.move(src, beside)  # a rename on one file system, else a copy
+            src = beside
+        dst = real
     old = dst.with_name(dst.name + ".old")
     shutil.rmtree(old, ignore_errors=True)
     if dst.exists():
@@ -110,6 +119,7 @@ def replace_dir(src: Path, dst: Path) -> None:
 
 def restore_interrupted_replace(dst: Path) -> None:
     """Undo a :func:`replace_dir` killed between its two renames."""
+    dst = Path(os.path.realpath(dst)) if dst.is_symlink() else dst
     old = dst.with_name(dst.name + ".old")
     if not dst.exists() and old.exists():
         os.replace(old, dst)
@@ -206,26 +216,81 @@ class ResumableState:
         barrier()
 
 
-@contextmanager
-def output_lock(directory: Path) -> Iterator[None]:
-    """Hold ``.<name>.lock`` beside ``directory`` while the block runs; raises ``UsageError`` naming the holder (pid,
-    command, since when) when another process holds it. The lock file stays; the lock is released with the process."""
-    check_output_dir(directory)
-    directory = directory.absolute()
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(directory.with_name(f".{directory.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
-    try:
+def lock_file(directory: Path) -> Path:
+    """The lock file of an output directory: ``.<name>.lock`` beside it."""
+    return directory.with_name(f".{directory.name}.lock")
+
+
+def _holder(fd: int) -> str:
+    return os.pread(fd, 4096, 0).decode(errors="replace").strip() or "a process"
+
+
+def _take_lock(path: Path) -> tuple[int, bool]:
+    """An open ``path`` (made if missing) and whether this process now holds its exclusive lock. A lock file is
+    removed by its holder at the end, so a file locked after its holder removed it is dropped and made anew."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "a process"
+            return fd, False
+        try:
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                return fd, True
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _held_around(directory: Path) -> tuple[Path, str] | None:
+    """An output directory above or below ``directory`` (resolved) that another run writes, with its holder: the
+    lock files beside its parents, and those inside it (a stage run alone inside a pipeline's output)."""
+    around = [lock_file(parent) for parent in directory.parents if parent != parent.parent]
+    around += sorted(directory.rglob(".*.lock")) if directory.is_dir() else []
+    for path in around:
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:  # none there (most parents)
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        except BlockingIOError:
+            return path.with_name(path.name.removeprefix(".").removesuffix(".lock")), _holder(fd)
+        finally:
+            os.close(fd)
+    return None
+
+
+@contextmanager
+def output_lock(directory: Path) -> Iterator[None]:
+    """Hold the lock of ``directory`` (:func:`lock_file` of its real path, symbolic links resolved) while the block
+    runs; raises ``UsageError`` naming the holder (pid, command, since when) when another process holds it, or holds
+    a directory above or below it. The lock dies with its process (``kill -9`` leaves nothing to clean up); its file
+    is removed when the block ends, on a refusal too."""
+    check_output_dir(directory)
+    real = directory.resolve()
+    real.parent.mkdir(parents=True, exist_ok=True)
+    path = lock_file(real)
+    fd, held = _take_lock(path)
+    try:
+        if not held:
             raise UsageError(
-                f"{directory} is being written by another run ({holder}); wait for it to end or choose another "
+                f"{directory} is being written by another run ({_holder(fd)}); wait for it to end or choose another "
                 "output dir"
-            ) from None
+            )
         os.ftruncate(fd, 0)
         command = " ".join([os.path.basename(sys.argv[0]), *sys.argv[1:]])
         os.pwrite(fd, f"pid {os.getpid()}: {command}, since {dt.datetime.now():%Y-%m-%d %H:%M:%S}".encode(), 0)
+        nearby = _held_around(real)
+        if nearby is not None:
+            inside = nearby[0] in real.parents
+            raise UsageError(
+                f"{directory} {'is inside' if inside else 'holds'} {nearby[0]}, which is being written by another run "
+                f"({nearby[1]}); wait for it to end or choose another output dir"
+            )
         yield
     finally:
+        if held:
+            path.unlink(missing_ok=True)
         os.close(fd)

@@ -33,7 +33,7 @@ from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig
-from lerobot_cso.durable import EpisodeJournal, output_lock
+from lerobot_cso.durable import EpisodeJournal, output_lock, replace_dir
 from lerobot_cso.errors import UsageError, check_number
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
@@ -370,6 +370,35 @@ def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_pa
     while alive(child) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not alive(child)
+
+
+def test_the_lock_sees_through_links_and_into_a_pipelines_dir_and_leaves_no_file(tmp_path):
+    """Issue 58, item 4: the lock was named from the path as given, so a symbolic link let two runs write one dir;
+    a stage run alone could write inside a running pipeline's dir; refused runs left ``.lock`` files; and ``demos``
+    into a link replaced it with a folder of its own and left ``<name>.old`` (``replace_dir``)."""
+    real, link, pipeline = tmp_path / "real", tmp_path / "link", tmp_path / "pipeline"
+    real.mkdir()
+    link.symlink_to(real, target_is_directory=True)
+    holder = rf"\(pid {os.getpid()}: "
+    with output_lock(real):
+        with pytest.raises(UsageError, match=rf"^{link} is being written by another run {holder}"), output_lock(link):
+            pass
+    with output_lock(pipeline):
+        with pytest.raises(UsageError, match=rf"^{pipeline}/spo is inside {pipeline}, which is being written by"):
+            with output_lock(pipeline / "spo"):
+                pass
+    with output_lock(pipeline / "spo"):
+        with pytest.raises(UsageError, match=rf"^{pipeline} holds {pipeline}/spo, which is being written by"):
+            with output_lock(pipeline):
+                pass
+    assert sorted(p.name for p in tmp_path.rglob("*.lock")) == []  # none left, by refused runs either
+    (real / "old.txt").write_text("old")
+    new = tmp_path / "link.partial" / "dataset"
+    new.mkdir(parents=True)
+    (new / "new.txt").write_text("new")
+    replace_dir(new, link)
+    assert link.is_symlink() and [p.name for p in real.iterdir()] == ["new.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "link.partial", "pipeline", "real"]
 
 
 def test_ctrl_c_of_the_process_group_is_the_pipelines_to_report_not_its_trainers():
