@@ -12,10 +12,11 @@ weights are the same, so the ablation needs no second R-SFT run). Every
 evaluation is the config's ``eval`` section (held-out evaluation seed range). Env steps and episodes of every
 SPO run are counted and printed.
 
-Each finished (method, seed) is written at once to ``--results`` (default
-``benchmarks/results/mw_proxy.json``, committed with the measured run), and skipped when the command is run
-again, from this clone or another; unfinished stages resume from ``--work`` (their own records). All the
-rollout stages of a run share their env pools (:func:`~lerobot_cso.rollout.pool.kept_pools`), as in the pipeline.
+Each finished (method, seed) is written at once to ``--results`` (default ``outputs/mw_proxy.json``; the
+committed results are ``benchmarks/results/mw_proxy.json``, which a run extends only when ``--results`` names it),
+and skipped when the command is run again, from this clone or another; unfinished stages resume from ``--work``
+(their own records). All the rollout stages of a run share their env pools
+(:func:`~lerobot_cso.rollout.pool.kept_pools`), as in the pipeline.
 SPO's health per iteration (clip fraction, approximate KL, rejection rate) is kept for every SPO run.
 
     python benchmarks/mw_proxy.py             # configs/mw_proxy.yaml, seeds 0-2
@@ -25,7 +26,7 @@ SPO's health per iteration (clip fraction, approximate KL, rejection rate) is ke
 Further arguments are pipeline settings over ``--config``, as ``lerobot-cso pipeline`` takes them; they are part
 of the config the results file is tied to:
 
-    python benchmarks/mw_proxy.py --results=benchmarks/results/other.json --rsft.successes_per_task=200
+    python benchmarks/mw_proxy.py --results=outputs/mw_proxy_n200.json --rsft.successes_per_task=200
 
 The camera benchmark (issue 33) is this driver on the camera config (the camera demo is it at a smaller budget):
 
@@ -36,7 +37,6 @@ The camera benchmark (issue 33) is this driver on the camera config (the camera 
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -45,6 +45,7 @@ from typing import Any
 import draccus
 import matplotlib
 import numpy as np
+from harness import mean_ci, provenance
 
 from lerobot_cso.cso.spo import run_spo
 from lerobot_cso.durable import write_atomic
@@ -65,7 +66,6 @@ SPO_RUNS = {
 }
 HEALTH = ("clip_fraction", "approx_kl", "rejection_rate")  # SPO's health, kept per iteration
 DIFFERENCES = (("cso", "il"), ("rsft", "il"), ("cso", "spo_only"), ("cso", "cso_no_freeze"))  # paired, with a CI
-T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}  # Student t quantiles for the 95 % CI, by dof
 
 
 def pipeline_config(path: Path, overrides: list[str]) -> PipelineConfig:
@@ -132,10 +132,9 @@ def paired_difference(results: dict[str, Any], a: str, b: str) -> dict[str, Any]
     """Mean over seeds of SR(a) − SR(b) with a Student-t 95 % CI (seeds paired), or None before 2 seeds."""
     common = sorted(set(results["methods"][a]["per_seed"]) & set(results["methods"][b]["per_seed"]))
     diffs = [results["methods"][a]["per_seed"][s] - results["methods"][b]["per_seed"][s] for s in common]
-    if len(diffs) < 2:
-        return {"mean": diffs[0], "ci95": None, "seeds": common} if diffs else None
-    mean, half = float(np.mean(diffs)), T_975[len(diffs) - 1] * float(np.std(diffs, ddof=1)) / math.sqrt(len(diffs))
-    return {"mean": mean, "ci95": [mean - half, mean + half], "seeds": common}
+    if not diffs:
+        return None
+    return mean_ci(diffs, student=True) | {"seeds": common}
 
 
 def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
@@ -245,7 +244,7 @@ def main() -> int:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--methods", default=",".join(METHODS), help="a subset runs first (il, rsft, cso always)")
     parser.add_argument("--work", type=Path, default=Path("outputs/mw_proxy"))
-    parser.add_argument("--results", type=Path, default=Path("benchmarks/results/mw_proxy.json"))
+    parser.add_argument("--results", type=Path, default=Path("outputs/mw_proxy.json"))
     args, overrides = parser.parse_known_args()
     command = "python benchmarks/mw_proxy.py " + " ".join(sys.argv[1:])
     methods = tuple(args.methods.split(","))
@@ -268,6 +267,7 @@ def main() -> int:
     # a rerun with nothing left to do leaves the file (its commands, wall time and plot) as it was
     if sum(len(e["per_seed"]) for e in results["methods"].values()) > finished:
         results["wall_seconds_this_run"] = time.perf_counter() - started
+        results |= provenance()  # the commit, machine and date of the latest run that added results
         save(args.results, results)
         plot(results, args.results.with_suffix(".png"))
     print(table(results))

@@ -31,7 +31,7 @@ Per task, each part in order (docs/real-arm.md, "Table 5 on the twin: benchmarks
 the twin on simulated time: a starved or paused process records the same demonstration), for a machine too busy
 for the real-time emulator.
 
-Every finished part is written at once to ``--results`` (default ``benchmarks/results/twin_table5.json``) with its wall
+Every finished part is written at once to ``--results`` (default ``outputs/twin_table5.json``) with its wall
 time and its episodes (an evaluation's also trial by trial, ``outcomes``: its journal's names, 1 for a success, so a
 later run on the same scenes can be paired with it), and per task the paired differences of the evaluations
 (``paired``); a rerun skips the finished
@@ -70,6 +70,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from harness import mean_ci
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -146,7 +147,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     a = p.add_argument
     a("--tasks", default="press_button,cube_in_bowl", help="comma list of twin scenes")
     a("--work", type=Path, default=ROOT / "outputs" / "twin_table5", help="the stages' output folders")
-    a("--results", type=Path, default=ROOT / "benchmarks" / "results" / "twin_table5.json")
+    a("--results", type=Path, default=ROOT / "outputs" / "twin_table5.json")
     a("--threads", type=int, default=2, help="torch threads of the training steps (IL, R-SFT's and SPO's updates)")
     a("--dry-run", action="store_true", help="print the commands of the parts still to run, run nothing")
     a("--stop-after", choices=PARTS, help="end each task after this part")
@@ -767,13 +768,9 @@ def journal(out: Path) -> dict[str, tuple[bool, int]]:
 def paired_difference(a: dict[str, bool | int], b: dict[str, bool | int]) -> dict[str, Any]:
     """SR(a) - SR(b) over the same trials (outcomes by trial name): the mean, its 95 % CI (normal, from the
     per-trial differences), and the trials a won and lost."""
-    trials = sorted(a)
-    d = np.array([a[t] for t in trials], float) - np.array([b[t] for t in trials], float)
-    mean, half = float(d.mean()), 1.96 * float(d.std(ddof=1)) / np.sqrt(len(d))
-    return {
-        "mean": mean, "ci95": [mean - half, mean + half], "won": int((d > 0).sum()), "lost": int((d < 0).sum()),
-        "trials": len(d),
-    }  # fmt: skip
+    d = [float(a[t]) - float(b[t]) for t in sorted(a)]
+    won, lost = sum(x > 0 for x in d), sum(x < 0 for x in d)
+    return mean_ci(d, student=False) | {"won": won, "lost": lost, "trials": len(d)}
 
 
 def paired_differences(base: Path) -> dict[str, dict[str, Any]]:

@@ -244,11 +244,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def mw_proxy():
-    """``benchmarks/mw_proxy.py`` as a module."""
-    spec = importlib.util.spec_from_file_location("mw_proxy", ROOT / "benchmarks" / "mw_proxy.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """``benchmarks/mw_proxy.py`` as a module, its folder on ``sys.path`` as when it runs (it imports ``harness``)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(ROOT / "benchmarks"))
+        spec = importlib.util.spec_from_file_location("mw_proxy", ROOT / "benchmarks" / "mw_proxy.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        yield module
 
 
 def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):

@@ -16,10 +16,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def t5():
-    spec = importlib.util.spec_from_file_location("twin_table5", ROOT / "benchmarks" / "twin_table5.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """``benchmarks/twin_table5.py`` as a module, its folder on ``sys.path`` as when it runs (for ``harness``)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(ROOT / "benchmarks"))
+        spec = importlib.util.spec_from_file_location("twin_table5", ROOT / "benchmarks" / "twin_table5.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        yield module
 
 
 def test_the_seeds_of_demos_training_and_evaluation_must_not_overlap(t5, capsys):
