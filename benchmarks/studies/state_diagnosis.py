@@ -8,7 +8,7 @@ the measured per-state rates p), and the entropy of the sampled skill tokens (me
 tokens: an unbiased estimate of the per-token entropy of the sampling distribution), and each state's successes
 (to pair states across sampling settings). ``--json`` saves it.
 
-    python benchmarks/state_diagnosis.py --policy_path=CKPT --tasks=reach-v3,button-press-v3 --states=40 --k=8
+    python benchmarks/studies/state_diagnosis.py --policy_path=CKPT --tasks=reach-v3,button-press-v3 --states=40 --k=8
 """
 
 import argparse

@@ -11,7 +11,8 @@ collection; one that mixes in demonstrations takes those of the IL checkpoint's 
 
 An IL checkpoint alone comes from the pipeline stopped after its IL stage (``./run.sh demo --stop_after=il``).
 
-    python benchmarks/rsft_study.py --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
+    python benchmarks/studies/rsft_study.py \\
+        --il_path=outputs/pipeline/metaworld_demo/il/checkpoints/last/pretrained_model \\
         --output_dir=outputs/rsft_study --variants=keep_all,cap2
 """
 

@@ -17,7 +17,7 @@ SPO training range per task, ``--k`` times each at evaluation's sampling. Prints
 mean (± one binomial standard error), the rollouts each variant's SPO ran, and its groups' SR, clip fraction
 and approximate KL. Finished variants are kept in ``<output_dir>/study.json`` and not rerun.
 
-    python benchmarks/spo_study.py --pipeline_dir=outputs/pipeline/metaworld_demo \
+    python benchmarks/studies/spo_study.py --pipeline_dir=outputs/pipeline/metaworld_demo \
         --variants=i10,lr5e-5,lr2e-4,g8,g24,k4,k16,t0.7,t1.3
 """
 
