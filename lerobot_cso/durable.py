@@ -162,13 +162,16 @@ class EpisodeJournal:
         return sorted((self.root / "episodes").glob(f"{group or '*'}/*.npz"))
 
     @staticmethod
-    def load(path: Path, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
-        """The arrays of an episode file (only ``keys`` when given); ``UsageError`` naming a damaged one."""
+    def load(
+        path: Path, keys: tuple[str, ...] | None = None, redo: str = "delete it and the run redoes that episode"
+    ) -> dict[str, np.ndarray]:
+        """The arrays of an episode file (only ``keys`` when given); ``UsageError`` naming a damaged one, ending in
+        ``redo``, what to do about it."""
         try:
             with np.load(path) as data:
                 return {k: data[k] for k in (data.files if keys is None else keys)}
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-            raise UsageError(f"{path} is damaged ({e}); delete it and the run redoes that episode") from None
+            raise UsageError(f"{path} is damaged ({e}); {redo}") from None
 
     def save_record(self, group: str, name: str, record: dict[str, Any]) -> None:
         directory = self.root / "records" / group

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import torch
 from cso_fakes import TASKS, ScriptedEngine, mixed, save_tiny_metaworld_policy
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils import import_utils
 from lerobot.utils.import_utils import get_safe_default_video_backend
 
@@ -640,6 +641,37 @@ def test_a_bad_config_file_or_a_damaged_staged_episode_or_log_is_one_line_naming
     report.write_text('{"tasks": {"reach-v3": ')
     with pytest.raises(UsageError, match=f"^{report} is damaged"):
         run_rsft(rollout_config(RSFTConfig, output_dir=report.parent))
+
+
+def test_a_damaged_rsft_buffer_or_journal_episode_is_one_line_with_advice_that_holds(two_policies, tmp_path):
+    """Issue 58, item 6: a truncated file of R-SFT's buffer gave a traceback, and a damaged journal episode said
+    "delete it and the run redoes that episode", false for R-SFT (the rerun draws a new state: another checkpoint)."""
+    out = tmp_path / "rsft"
+    cfg = RSFTConfig(tasks=",".join(TASKS), output_dir=out, policy=policy_config(two_policies[0]))
+    cfg = dataclasses.replace(cfg, successes_per_task=1, n_strikes=4, epochs=1, batch_size=8, lr=1e-3, min_lr=1e-4)
+    engine = lambda *args: ScriptedEngine(mixed)  # noqa: E731
+    run_rsft(cfg, make_engine=engine)
+    before = LeRobotDataset(cfg.repo_id, root=out / "buffer").hf_dataset.to_pandas()
+    for made in ("pretrained_model", "train_state"):  # as a run killed in its fine-tune leaves it
+        shutil.rmtree(out / made)
+    part = sorted((out / "buffer" / "data").rglob("*.parquet"))[0]
+    part.write_bytes(part.read_bytes()[: part.stat().st_size // 2])
+    with pytest.raises(UsageError) as damaged:
+        run_rsft(cfg, make_engine=engine)
+    assert re.fullmatch(
+        f"{out / 'buffer'} is damaged \\(ArrowInvalid: .*\\); delete it and the rerun writes it again from "
+        f"{out / 'journal'}, the same buffer",
+        str(damaged.value),
+    )
+    shutil.rmtree(out / "buffer")  # as it advises
+    run_rsft(cfg, make_engine=engine)
+    assert LeRobotDataset(cfg.repo_id, root=out / "buffer").hf_dataset.to_pandas().equals(before)
+    for made in ("pretrained_model", "train_state", "buffer"):
+        shutil.rmtree(out / made)
+    episode = sorted((out / "journal" / "episodes").rglob("*.npz"))[0]
+    episode.write_bytes(episode.read_bytes()[:100])
+    with pytest.raises(UsageError, match=f"^{episode} is damaged .*; R-SFT cannot redo one episode as it drew it: "):
+        run_rsft(cfg, make_engine=engine)
 
 
 def test_demos_of_tasks_without_an_expert_names_this_commands_flags():

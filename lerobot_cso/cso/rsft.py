@@ -34,6 +34,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from datasets.exceptions import DatasetGenerationError
 from lerobot.configs import parser
 from lerobot.configs.types import FeatureType
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -299,7 +300,11 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     shutil.rmtree(work, ignore_errors=True)
     files = [p for t in tasks for p in journal.episode_files(t)]
     world = cfg.rollout_world()
-    first = EpisodeJournal.load(files[0])
+    redo = (
+        f"R-SFT cannot redo one episode as it drew it: delete {cfg.output_dir} to redo R-SFT (deleting only this file "
+        "makes the rerun collect a replacement from a new initial state: another buffer and checkpoint)"
+    )
+    first = EpisodeJournal.load(files[0], redo=redo)
     cameras = sorted(k.removeprefix("image_") for k in first if k.startswith("image_"))
     keys = {cam: key for key, cam in camera_inputs(policy_features(cfg), world).items()}  # camera -> input key
     image_shapes = {keys[cam]: tuple(first[f"image_{cam}"].shape[1:]) for cam in cameras}
@@ -318,7 +323,7 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     for path in tqdm(files, desc="writing R-SFT buffer", leave=False):
         task = path.parent.name
         seed, attempt = (int(x) for x in path.stem.split("_"))
-        ep = EpisodeJournal.load(path)  # each array read once: an NpzFile decompresses an array on every access
+        ep = EpisodeJournal.load(path, redo=redo)  # each array read once: an NpzFile decompresses one on every access
         steps = ep["decision_steps"]
         skill = np.searchsorted(steps, np.arange(len(ep["actions"])), side="right") - 1
         for t in range(len(ep["actions"])):
@@ -454,6 +459,24 @@ def _advantage_sampler(
     return torch.utils.data.WeightedRandomSampler(weights, n_items, replacement=True, generator=generator)
 
 
+def open_buffer(cfg: RSFTConfig, buffer: Path, delta_timestamps: dict[str, list[float]] | None) -> LeRobotDataset:
+    """The success buffer as a LeRobotDataset; ``UsageError`` naming a damaged one (a truncated file), which the
+    journal writes again as it was."""
+    try:
+        return LeRobotDataset(
+            cfg.repo_id,
+            root=buffer,
+            delta_timestamps=delta_timestamps,
+            video_backend="pyav",  # as the demos: skips probing torchcodec (a traceback per load where it cannot load)
+        )
+    except (DatasetGenerationError, OSError, ValueError, KeyError) as e:
+        cause = e.__cause__ or e
+        raise UsageError(
+            f"{buffer} is damaged ({type(cause).__name__}: {' '.join(str(cause).split())[:200]}); delete it and the "
+            f"rerun writes it again from {cfg.output_dir / 'journal'}, the same buffer"
+        ) from None
+
+
 def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     """Eq. 6 on the buffer's decision frames, then freeze the encoders and save the checkpoint.
 
@@ -465,12 +488,7 @@ def finetune(cfg: RSFTConfig, buffer: Path) -> Path:
     policy.set_encoders_frozen(False)
     # Action chunks are only read by QueST's optional decoder loss (and cost LeRobot a query per frame).
     chunk = {"action": [i / cfg.rollout_world().fps for i in range(policy.config.chunk_size)]}
-    ds = LeRobotDataset(
-        cfg.repo_id,
-        root=buffer,
-        delta_timestamps=chunk if policy.config.decoder_loss_scale else None,
-        video_backend="pyav",  # as the demos: skips probing torchcodec (a traceback per load where it cannot load)
-    )
+    ds = open_buffer(cfg, buffer, chunk if policy.config.decoder_loss_scale else None)
     starts = np.flatnonzero(np.asarray(ds.hf_dataset[SKILL_START_KEY]).reshape(-1) == 1)
     items = _fine_tune_items(cfg, policy, pre, ds, starts)
     generator = torch.Generator().manual_seed(cfg.seed)
