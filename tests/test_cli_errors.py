@@ -343,6 +343,26 @@ def test_help_and_a_misspelt_subcommand_import_neither_torch_nor_lerobot():
     assert proc.stdout.strip().splitlines()[-1] == "[]"
 
 
+def test_a_stages_help_and_an_unknown_option_answer_without_torch_once_the_help_is_kept(tmp_path, monkeypatch, capsys):
+    """Issue 58, item 8: ``lerobot-cso spo --help`` and a misspelt option took 6-8 s each (torch and LeRobot
+    imported first); the help is now kept once made, and both answer from it without those imports."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    assert cli.main(["spo", "--help"]) == 0  # made (here, where torch is imported already) and kept
+    made = capsys.readouterr().out
+    assert "--iterations int" in made and cli.help_cache("spo").read_text() == made
+    code = (
+        "import sys; from lerobot_cso import cli; assert cli.main(['spo', '--help']) == 0; "
+        "assert cli.main(['spo', '--iteratoins=3', '--tasks=reach-v3']) == 2; "
+        "print(sorted(m for m in ('torch', 'lerobot.configs', 'metaworld') if m in sys.modules), file=sys.stderr)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=os.environ, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0 and proc.stdout == made, proc.stderr
+    assert proc.stderr.splitlines() == ["error: unrecognized arguments: --iteratoins=3", "[]"]
+
+
 def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_path):
     """Issue 35, item 5: two runs on one output dir crashed one of them; kill -9 of the pipeline left its
     lerobot-train child writing ``il/``."""
