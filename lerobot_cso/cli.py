@@ -7,11 +7,13 @@ subcommand answer at once. A subcommand's ``--help`` is kept once made (:func:`h
 answers at once the next time, and an option it does not list is refused from it without those imports.
 Bad input raises :class:`~lerobot_cso.errors.UsageError`: one ``error: ...`` line on stderr, exit code 2 — also
 what the argument parser rejects (an unknown ``--robot.type``, a misspelt option, a value of the wrong type),
-without its usage dump. Ctrl-C ends the command with one line saying where it stopped, exit code 130; the work it
-finished is saved, and the same command resumes from it (an evaluation, written only at its end, starts over).
+without its usage dump. A full disk is one ``error:`` line naming the file, exit code 1. Ctrl-C ends the command
+with one line saying where it stopped, exit code 130. After either, the work it finished is saved, and the same
+command resumes from it (an evaluation, written only at its end, starts over).
 """
 
 import contextlib
+import errno
 import hashlib
 import importlib
 import inspect
@@ -141,6 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        if e.errno != errno.ENOSPC and "No space left on device" not in str(e):
+            raise
+        where = f" writing {e.filename}" if e.filename else ""
+        print(
+            f"\nerror: lerobot-cso {name} stopped: no space left on the device{where}; free some and rerun: "
+            f"{RESTARTS.get(name, 'the work it finished is saved, and the same command resumes from it')}",
+            file=sys.stderr,
+        )
+        return 1
     except KeyboardInterrupt as e:
         where = interrupted_where(e)
         # On a line of its own: a progress bar may hold the cursor (the "\n" ends it).

@@ -167,6 +167,8 @@ def check_output_dir(path: Path, flag: str = "--output_dir") -> None:
     before any work rather than at the first write. Writing is tried (a directory made and removed at once in the
     nearest existing one), as permission bits do not tell: root ignores them, and /proc or /sys refuse root too."""
     existing = path.absolute()
+    if not existing.resolve().name:
+        raise UsageError(f"{flag}={path} is the root of the file system: choose a directory of the run's own")
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():

@@ -28,7 +28,7 @@ from lerobot.configs import parser
 
 from lerobot_cso import rollout_stage
 from lerobot_cso.durable import output_lock, read_json
-from lerobot_cso.errors import UsageError, interruptible
+from lerobot_cso.errors import UsageError, check_output_dir, interruptible
 from lerobot_cso.rollout_stage import RolloutStageConfig, policy_features
 from lerobot_cso.worlds.base import camera_inputs
 
@@ -72,6 +72,8 @@ class EvalConfig(RolloutStageConfig):
         features = policy_features(self)  # none on the pipeline's stand-in for a policy still to be trained
         if self.video_episodes and features and not camera_inputs(features, self.rollout_world()):
             raise UsageError("video_episodes: the policy reads no camera, so there is no frame to write")
+        if self.video_episodes:
+            check_output_dir(self.output_dir / "videos", "--video_episodes: its folder")
         self.eval_seeds()
         return tasks
 

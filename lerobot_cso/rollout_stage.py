@@ -30,6 +30,9 @@ from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
 from lerobot_cso.worlds.base import Rollouts, World, WorldConfig, camera_inputs
 from lerobot_cso.worlds.registry import default_world
 
+# Each env is a simulator held in memory (100 000 were tried); the shipped configs use at most 64.
+MAX_ENVS = 1024
+
 
 @dataclass
 class RolloutStageConfig(PolicyPathConfig):
@@ -105,8 +108,8 @@ class RolloutStageConfig(PolicyPathConfig):
             tasks = world.resolve_tasks(self.tasks)
         except ValueError as e:
             raise UsageError(str(e)) from None
-        if self.num_envs < 1:
-            raise UsageError(f"num_envs must be >= 1, got {self.num_envs}")
+        if not 1 <= self.num_envs <= MAX_ENVS:
+            raise UsageError(f"num_envs must be in [1, {MAX_ENVS}], got {self.num_envs}")
         if self.vectorization not in VECTORIZATIONS:
             raise UsageError(f"vectorization must be one of {', '.join(VECTORIZATIONS)}, got '{self.vectorization}'")
         if self.max_steps is not None and not 1 <= self.max_steps <= world.horizon:

@@ -7,6 +7,7 @@ subprocess is used only where the process itself is what is tested (its exit cod
 from __future__ import annotations
 
 import dataclasses
+import errno
 import importlib
 import json
 import logging
@@ -514,6 +515,31 @@ def test_a_policy_of_another_action_size_is_refused_before_any_env(two_policies,
         assert not out.exists()
     with pytest.raises(UsageError, match=rf"^{policy}/model.safetensors does not fit the policy its config describes"):
         load_policy(policy)  # item 7: its weights are a 4-d action policy's
+
+
+def test_impossible_sizes_and_places_are_refused_and_a_full_disk_is_named(two_policies, tmp_path, capsys, monkeypatch):
+    """Issue 58, item 7: ``--num_envs`` had no upper bound, ``--output_dir=/`` and a ``videos`` path that is a file
+    failed at their first write (after the whole evaluation), and a full disk (ENOSPC) was a traceback."""
+    with pytest.raises(UsageError, match=r"^num_envs must be in \[1, 1024\], got 100000$"):
+        rollout_config(EvalConfig, num_envs=100_000).validate()
+    with pytest.raises(UsageError, match="^--output_dir=/ is the root of the file system"):
+        rollout_config(SPOConfig, output_dir=Path("/")).validate()
+    (tmp_path / "videos").write_text("a file")
+    with pytest.raises(UsageError, match=f"^--video_episodes: its folder={tmp_path}/videos: .*videos is a file"):
+        rollout_config(EvalConfig, output_dir=tmp_path, video_episodes=1).validate()
+
+    def full_disk(*args) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "spo" / "state.tmp" / "optimizer.pt"))
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(rollout_stage, "stage_engine", full_disk)
+    code, _, err = run_cli(
+        ["spo", f"--policy.path={two_policies[0]}", f"--tasks={TASKS[0]}", f"--output_dir={tmp_path / 'spo'}"], capsys
+    )
+    assert code == 1 and err == (
+        f"error: lerobot-cso spo stopped: no space left on the device writing {tmp_path}/spo/state.tmp/optimizer.pt; "
+        "free some and rerun: the work it finished is saved, and the same command resumes from it"
+    )
 
 
 def damaged_copies(policy: Path, root: Path) -> dict[str, Path]:
