@@ -1,7 +1,7 @@
 """Configuration of the ``piper_follower`` robot (joint angles in radians, gripper opening in metres).
 
 Every plain driver setting (bus, motion mode, speed, timeouts, recovery, disconnect policy, rest pose …)
-is inherited from ``piper_can.driver.DriverSettings``, with its default and its check; only the
+is inherited from ``piper_can.settings.DriverSettings``, with its default and its check; only the
 settings LeRobot shapes differently (``max_relative_target``, ``joint_limits``, ``port``), the motion
 mode (which defaults to the recorded one) and the robot's own ones are declared here.
 """
@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
-from piper_can.driver import MOTION_MODES, DriverConfig, DriverSettings, check_speed_percent
 from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
+from piper_can.settings import MOTION_MODES, DriverConfig, DriverSettings, check_speed_percent
 
 from .features import GRIPPER_KEY, JOINT_KEYS, MOTOR_KEYS
 from .motion_metadata import DEFAULT_MOTION_MODE, DEFAULT_SPEED_PERCENT, MotionMode

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from lerobot.robots.config import RobotConfig
-from piper_can.driver import DriverConfig
+from piper_can.settings import DriverConfig
 
 from .config_piper_follower import PiperFollowerConfig
 from .config_piper_twin_camera import PiperTwinCameraConfig

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from lerobot.configs import parser
 from lerobot.utils.constants import HF_LEROBOT_HOME
-from piper_can.driver import MOTION_MODES
+from piper_can.settings import MOTION_MODES
 
 INFO_KEY = "piper_motion"
 DEFAULT_MOTION_MODE = "position"

@@ -1,7 +1,11 @@
 """Safe driver for one PiPER follower arm: enable handshake, clamped joint/gripper commands that are
 refused unless feedback shows every motor enabled in the mode we set, stale-feedback watchdog, e-stop
-that no motion frame can overtake, resume / clear-error / reset recovery, firmware limits, faults as
-exceptions, disconnect policy.
+that no motion frame can overtake, resume / clear-error / reset recovery, faults as exceptions,
+disconnect policy.
+
+Its settings are ``settings``; the bus, the feedback cache and its ageing ``link`` and ``state``; other
+hosts' resets and mode changes and a reset's motor-off ``bus_watch``; the arm's own settings read and
+written on connect (collision levels, caps, flash limits) and the high-follow quirk ``arm_setup``.
 """
 
 from __future__ import annotations
@@ -9,26 +13,29 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from enum import StrEnum
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
+from .arm_setup import (
+    check_collision_protection,
+    confirm_speed_cap,
+    firmware_limits,
+    high_follow_exit_needs_reset,
+    write_joint_caps,
+)
+from .bus_watch import ForeignFrames, MotorOff, joints_disabled_since
 from .clock import SYSTEM_CLOCK, Clock
 from .codec import (
-    GRIPPER_EFFORT_MAX_NM,
     ID_ARM_STATUS,
-    ID_EMERGENCY_STOP,
     ID_GRIPPER_FEEDBACK,
     ID_HIGH_SPEED,
     ID_JOINT_FEEDBACK,
     ID_LOW_SPEED,
-    ID_MODE_CONTROL,
     LIMIT_QUERY_ANGLE_SPEED,
     MIT_MODE_HIGH_FOLLOW,
     MIT_MODE_POSITION_VELOCITY,
     MOTOR_ALL_JOINTS,
     NUM_JOINTS,
-    PARAM_QUERY_COLLISION,
     ArmStatusCode,
     CtrlMode,
     EmergencyStop,
@@ -41,17 +48,12 @@ from .codec import (
     LimitQuery,
     ModeControl,
     MotorEnable,
-    MotorLimitsSet,
     MoveMode,
-    ParamQuery,
-    decode_command,
     encode,
     encode_joint_targets,
-    firmware_release,
 )
 from .errors import (
     ArmNotReadyError,
-    CollisionProtectionOffError,
     EmergencyStopError,
     EnableTimeoutError,
     Fault,
@@ -60,16 +62,22 @@ from .errors import (
     HighFollowError,
     PartialCommandError,
     PiperConnectionError,
-    PiperError,
 )
 from .interlock import NOT_ENABLED, Interlock
 from .link import PiperLink
-from .safety import SDK_SOFT_LIMITS, JointLimits, check_finite, clamp, safe_target
+from .safety import JointLimits, check_finite, clamp, safe_target
+from .settings import (
+    FEEDBACK_PERIOD_S,
+    RESET_MOTOR_OFF_S,
+    DisconnectPolicy,
+    DriverConfig,
+    HighFollowExit,
+    Recovery,
+)
 from .state import ArmState
 
 log = logging.getLogger(__name__)
 
-FEEDBACK_PERIOD_S = 0.005  # 0x2A1..0x2A8 and 0x251..0x256 at 200 Hz
 LOW_SPEED_PERIOD_S = 0.025  # 0x261..0x266 (the enable bits) at 40 Hz
 ENABLE_BACKOFF_START_S = 0.01
 ENABLE_BACKOFF_CAP_S = 0.2
@@ -77,8 +85,6 @@ REST_PERIOD_S = 0.02
 MODE_RESEND_S = 0.05
 REST_TOLERANCE_RAD = 0.01
 REST_TOLERANCE_M = 0.002
-# The firmware switches the motors off this long after a reset (measured on a real arm).
-RESET_MOTOR_OFF_S = 0.73
 # An e-stop frame the bus refuses (a full TX queue) is retried every period until this much time passed.
 ESTOP_RETRY_S = 0.1
 ESTOP_RETRY_PERIOD_S = 0.001
@@ -88,182 +94,9 @@ PAST_LIMIT_RAD = math.radians(0.01)
 # Joint feedback that keeps arriving with the very same angles for this long while every command asks
 # for a move of at least FROZEN_MIN_MOVE_RAD counts as frozen (a stuck sender, a replayed capture).
 FROZEN_AFTER_S = 0.25
-# Feedback stamped this long after a reset was sent after the firmware acted on it (it handles host frames
-# within its 5 ms cycle): only such a frame showing a motor on proves the reset's countdown is still running.
-RESET_ACTED_WITHIN_S = 2 * FEEDBACK_PERIOD_S
 FROZEN_MIN_MOVE_RAD = 0.01
-# Firmware from this release on leaves high-follow on a plain 0x151; older firmware needs a reset.
-LEAVES_HIGH_FOLLOW_WITHOUT_RESET = (1, 8, 5)
-# A firmware limit counts as different from a soft limit beyond half its 0.1° resolution.
-LIMIT_MISMATCH_RAD = math.radians(0.05)
 # An enable() that another host's reset or high-follow request interrupts starts over at most this often.
 MAX_ENABLE_RESTARTS = 5
-MOTION_MODES = ("position", "high_follow")
-# A watchdog looser than this is no watchdog (200 feedback periods; the emulator over UDP needs 0.1-0.3 s).
-MAX_FEEDBACK_TIMEOUT_S = 1.0
-MAX_JOINT_SPEED_RAD_S = 3.0  # the firmware's own cap (0x474 accepts 0-3 rad/s)
-MAX_JOINT_ACCEL_RAD_S2 = 5.0  # the firmware's own cap (0x475 accepts 0-5 rad/s^2)
-
-
-class DisconnectPolicy(StrEnum):
-    """What ``disconnect`` does to an enabled arm."""
-
-    HOLD = "hold"  # stay enabled, holding the last target (the arm does not fall)
-    REST = "rest"  # move slowly to the rest pose, then disable; if it cannot get there, hold
-
-
-class Recovery(StrEnum):
-    """What ``enable`` does about faults the firmware reports (``recovery``)."""
-
-    NONE = "none"  # refuse: raise FirmwareFaultError
-    CLEAR_ERRORS = "clear_errors"  # 0x475 clear-error (joints) and 0x159 clear-error (gripper), then enable
-    RESET = "reset"  # 0x150 reset (the motors switch off for a moment), then enable
-
-
-class CollisionOff(StrEnum):
-    """What ``connect`` does when the arm reports its collision protection off (level 0) on a joint."""
-
-    WARN = "warn"  # log an error and go on
-    REFUSE = "refuse"  # raise CollisionProtectionOffError
-
-
-class HighFollowExit(StrEnum):
-    """What ``enable`` in position mode does when old firmware may still be in high-follow."""
-
-    RESET = "reset"  # leave it with the reset sequence (the motors switch off for a moment)
-    REFUSE = "refuse"  # raise HighFollowError
-
-
-@dataclass
-class DriverSettings:
-    """The plain-valued driver settings, shared as they are by ``PiperFollowerConfig`` (one source)."""
-
-    interface: str = "socketcan"
-    channel: str = "can0"
-    bitrate: int = 1_000_000
-    # "position": the firmware plans each move at speed_percent; "high_follow": 0xAD, no planning.
-    motion_mode: str = "position"
-    speed_percent: int = 50
-    gripper_effort_nm: float = 1.0
-    # Stale-feedback watchdog: no joint, gripper or status frame for longer than this stops commanding.
-    feedback_timeout_s: float = 3 * FEEDBACK_PERIOD_S
-    connect_timeout_s: float = 1.0
-    enable_timeout_s: float = 2.0
-    # After a reset, wait up to this long for the firmware's delayed motor-off (~0.73 s) before enabling.
-    reset_settle_s: float = 1.0
-    high_follow_exit: str = HighFollowExit.RESET
-    recovery: str = Recovery.NONE
-    read_firmware_limits: bool = True
-    # Also read (and watch) 0x251..0x256: joint velocities and efforts.
-    use_velocity_and_torque: bool = False
-    disconnect_policy: str = DisconnectPolicy.HOLD
-    rest_pose_rad: tuple[float, ...] = (0.0,) * NUM_JOINTS
-    rest_gripper_m: float = 0.0
-    rest_speed_rad_s: float = 0.5
-    rest_timeout_s: float = 10.0
-    # The arm's collision protection (0x47B) read on connect; level 0 (off) on a joint: warn or refuse.
-    collision_off: str = CollisionOff.WARN
-    # The firmware's own per-joint caps, written on connect (they persist in the arm): max joint speed
-    # (0x474, sent in 0.01 rad/s) and max joint acceleration (0x475, 0.01 rad/s^2). None: left as they are.
-    max_joint_speed_rad_s: float | None = None
-    max_joint_accel_rad_s2: float | None = None
-
-    def __post_init__(self) -> None:
-        self._check_motion()
-        if len(self.rest_pose_rad) != NUM_JOINTS:
-            raise ValueError(f"rest_pose_rad needs {NUM_JOINTS} angles, got {len(self.rest_pose_rad)}")
-        for j, angle in enumerate(self.rest_pose_rad, start=1):
-            _check_range(f"rest_pose_rad[{j}]", angle, -math.pi, math.pi)
-        _check_range("rest_gripper_m", self.rest_gripper_m, 0.0, 0.1)
-        _check_range("gripper_effort_nm", self.gripper_effort_nm, 0.0, GRIPPER_EFFORT_MAX_NM)
-        _check_range("feedback_timeout_s", self.feedback_timeout_s, 0.0, MAX_FEEDBACK_TIMEOUT_S, positive=True)
-        _check_range("rest_speed_rad_s", self.rest_speed_rad_s, 0.0, MAX_JOINT_SPEED_RAD_S, positive=True)
-        # Shorter than the firmware's delayed motor-off, a reset's re-enable would be lost (the arm left limp).
-        _check_range("reset_settle_s", self.reset_settle_s, RESET_MOTOR_OFF_S, 60.0)
-        for name in ("connect_timeout_s", "enable_timeout_s", "rest_timeout_s"):
-            _check_range(name, getattr(self, name), 0.0, 600.0, positive=True)
-        if self.max_joint_speed_rad_s is not None:
-            _check_range("max_joint_speed_rad_s", self.max_joint_speed_rad_s, 0.01, MAX_JOINT_SPEED_RAD_S)
-        if self.max_joint_accel_rad_s2 is not None:
-            _check_range("max_joint_accel_rad_s2", self.max_joint_accel_rad_s2, 0.01, MAX_JOINT_ACCEL_RAD_S2)
-        if isinstance(self.bitrate, bool) or not isinstance(self.bitrate, int) or self.bitrate <= 0:
-            raise ValueError(f"bitrate must be a positive integer, got {self.bitrate!r}")
-        for name, kind in (
-            ("disconnect_policy", DisconnectPolicy),
-            ("recovery", Recovery),
-            ("high_follow_exit", HighFollowExit),
-            ("collision_off", CollisionOff),
-        ):
-            value = getattr(self, name)
-            if value not in set(kind):
-                raise ValueError(f"{name} must be one of {[k.value for k in kind]}, got {value!r}")
-
-    def _check_motion(self) -> None:
-        if self.motion_mode not in MOTION_MODES:
-            raise ValueError(f"motion_mode must be one of {MOTION_MODES}, got {self.motion_mode!r}")
-        check_speed_percent(self.speed_percent)
-
-
-def check_speed_percent(value: object) -> None:
-    """``speed_percent``: an integer 0..100 (the 0x151 byte)."""
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
-        raise ValueError(f"speed_percent must be an integer 0..100, got {value!r}")
-
-
-def _check_range(name: str, value: object, lower: float, upper: float, positive: bool = False) -> None:
-    """One clear error unless ``value`` is a finite number in ``[lower, upper]`` (above ``lower`` when
-    ``positive``); NaN fails every bound."""
-    number = not isinstance(value, bool) and isinstance(value, int | float)
-    if number and math.isfinite(value) and (lower < value if positive else lower <= value) and value <= upper:
-        return
-    bounds = f"({lower}, {upper}]" if positive else f"[{lower}, {upper}]"
-    raise ValueError(f"{name} must be a finite number in {bounds}, got {value!r}")
-
-
-@dataclass
-class DriverConfig(DriverSettings):
-    """Bus, motion and safety settings of a ``PiperDriver`` (all safety features on by default)."""
-
-    bus_options: Mapping[str, object] = field(default_factory=dict)
-    limits: JointLimits = SDK_SOFT_LIMITS
-    # LeRobot ``max_relative_target`` semantics: per command, each target stays within this of the
-    # measured position. One value or one per joint; None turns the step limit off.
-    max_step_rad: float | Sequence[float] | None = 0.2
-    max_gripper_step_m: float | None = 0.02
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        steps = self.joint_steps()
-        if steps is not None and not all(0 < s and math.isfinite(s) for s in steps):
-            raise ValueError(f"max_step_rad must be positive and finite, got {self.max_step_rad}")
-        if self.max_gripper_step_m is not None:
-            _check_range("max_gripper_step_m", self.max_gripper_step_m, 0.0, math.inf, positive=True)
-        for j, (angle, (lower, upper)) in enumerate(zip(self.rest_pose_rad, self.limits.joints_rad, strict=True), 1):
-            if not lower <= angle <= upper:
-                raise ValueError(f"rest_pose_rad joint_{j} = {angle} is outside its limits [{lower}, {upper}]")
-        lower, upper = self.limits.gripper_m
-        if not lower <= self.rest_gripper_m <= upper:
-            raise ValueError(f"rest_gripper_m = {self.rest_gripper_m} is outside the gripper range [{lower}, {upper}]")
-
-    @classmethod
-    def from_settings(cls, settings: DriverSettings, **extra: object) -> DriverConfig:
-        """Every ``DriverSettings`` field of ``settings`` (e.g. a robot config), replaced or added by ``extra``."""
-        return cls(**{f.name: getattr(settings, f.name) for f in fields(DriverSettings)} | extra)
-
-    @property
-    def high_follow(self) -> bool:
-        return self.motion_mode == "high_follow"
-
-    def joint_steps(self) -> tuple[float, ...] | None:
-        """The per-joint step limit, or None when off."""
-        if self.max_step_rad is None:
-            return None
-        if isinstance(self.max_step_rad, int | float):
-            return (float(self.max_step_rad),) * NUM_JOINTS
-        steps = tuple(float(s) for s in self.max_step_rad)
-        if len(steps) != NUM_JOINTS:
-            raise ValueError(f"max_step_rad needs one value or {NUM_JOINTS}, got {len(steps)}")
-        return steps
 
 
 @dataclass(frozen=True, slots=True)
@@ -299,6 +132,7 @@ class PiperDriver:
         self.link = PiperLink(cfg.interface, cfg.channel, cfg.bitrate, cfg.bus_options, watch, "feedback frame", clock)
         self.limits: JointLimits = cfg.limits  # the soft limits, narrowed to the firmware's on connect
         self._interlock = Interlock()
+        self._foreign = ForeignFrames(self.link)
         # One lifecycle operation (enable, reset, recover, disable, disconnect) at a time; e-stops never wait.
         self._operation = threading.RLock()
         self._disconnecting = False  # only the disconnect policy's own rest walk may command meanwhile
@@ -343,107 +177,18 @@ class PiperDriver:
             return
         try:
             self.link.send(encode(FirmwareQuery()))
-            self._check_collision_protection()
-            self._write_joint_caps()
+            check_collision_protection(self.link, self.config)
+            write_joint_caps(self.link, self.config)
             if self.config.read_firmware_limits:
                 self.link.send(*(encode(LimitQuery(m, LIMIT_QUERY_ANGLE_SPEED)) for m in range(1, NUM_JOINTS + 1)))
-                self._apply_firmware_limits()
-                self._confirm_speed_cap()
+                self.limits = firmware_limits(self.link, self.config)
+                confirm_speed_cap(self.link, self.config)
             status = self.link.state().status
             # Someone put the arm in CAN mode before us: it may be in high-follow (not in any feedback).
             self._may_be_high_follow = status is not None and status.value.ctrl_mode == CtrlMode.CAN
         except BaseException:
             self.link.close()
             raise
-
-    def _check_collision_protection(self) -> None:
-        """Ask for the collision-protection levels (0x477 02 -> 0x47B); level 0 (off) warns or refuses."""
-        asked_at = self.clock.monotonic()
-        self.link.send(encode(ParamQuery(PARAM_QUERY_COLLISION)))
-
-        def answered(s: ArmState) -> bool:
-            return s.collision_levels is not None and s.collision_levels.timestamp > asked_at
-
-        if not self.link.wait_for(answered, self.config.connect_timeout_s):
-            log.warning(
-                "PiPER on %s did not report its collision-protection levels (0x47B): whether it stops on a "
-                "collision is unknown",
-                self.link.where,
-            )
-            return
-        levels = self.link.state().collision_levels.value.levels  # type: ignore[union-attr]
-        off = [f"joint_{j}" for j, level in enumerate(levels, start=1) if level == 0]
-        if not off:
-            return
-        message = (
-            f"PiPER on {self.link.where} reports collision protection OFF (level 0) on {', '.join(off)}: the arm "
-            "will not stop when it hits something; set a level 1..8 (0x47A, vendor tools)"
-        )
-        if self.config.collision_off == CollisionOff.REFUSE:
-            raise CollisionProtectionOffError(message + ", or set collision_off=warn")
-        log.error("%s", message)
-
-    def _write_joint_caps(self) -> None:
-        """Write the firmware's own joint speed / acceleration caps, if configured (they persist in the arm).
-
-        The speed unit of 0x474 is disputed (0.01 or 0.001 rad/s): it is sent in 0.01 rad/s, so if the
-        firmware reads 0.001 the arm moves ten times slower than asked, never faster."""
-        cfg = self.config
-        if cfg.max_joint_speed_rad_s is not None:
-            raw = round(cfg.max_joint_speed_rad_s * 100)
-            self.link.send(*(encode(MotorLimitsSet(m, max_speed_raw=raw)) for m in range(1, NUM_JOINTS + 1)))
-            log.warning("PiPER on %s: joint speed capped at %.2f rad/s (0x474)", self.link.where, raw / 100)
-        if cfg.max_joint_accel_rad_s2 is not None:
-            raw = round(cfg.max_joint_accel_rad_s2 * 100)
-            self.link.send(encode(JointConfig(NUM_JOINTS + 1, accel_valid=True, max_accel_raw=raw)))
-            log.warning("PiPER on %s: joint acceleration capped at %.2f rad/s^2 (0x475)", self.link.where, raw / 100)
-
-    def _confirm_speed_cap(self) -> None:
-        """Log an error for every motor whose 0x473 reply does not show the speed cap we wrote."""
-        if self.config.max_joint_speed_rad_s is None:
-            return
-        raw = round(self.config.max_joint_speed_rad_s * 100)
-        limits = self.link.state().motor_limits
-        ignored = [f"joint_{m}" for m in range(1, NUM_JOINTS + 1) if m in limits and limits[m].max_speed_raw != raw]
-        if ignored:
-            log.error("PiPER on %s did not take the joint speed cap (0x474) on %s", self.link.where, ", ".join(ignored))
-
-    def _apply_firmware_limits(self) -> None:
-        got_all = self.link.wait_for(lambda s: len(s.motor_limits) >= NUM_JOINTS, self.config.connect_timeout_s)
-        firmware = self.link.state().motor_limits
-        if not got_all:
-            missing = [f"joint_{m}" for m in range(1, NUM_JOINTS + 1) if m not in firmware]
-            log.warning(
-                "PiPER on %s sent no firmware limits (0x473) for %s; using the soft limits only",
-                self.link.where,
-                ", ".join(missing),
-            )
-        joints = []
-        for j, (lower, upper) in enumerate(self.config.limits.joints_rad, start=1):
-            if j not in firmware:
-                joints.append((lower, upper))
-                continue
-            fw_lower, fw_upper = firmware[j].min_angle_rad, firmware[j].max_angle_rad
-            narrowed = (max(lower, fw_lower), min(upper, fw_upper))
-            if narrowed[0] > narrowed[1]:
-                raise PiperError(
-                    f"PiPER on {self.link.where}: joint_{j} soft limits [{lower:.4f}, {upper:.4f}] rad and firmware "
-                    f"limits [{fw_lower:.4f}, {fw_upper:.4f}] rad do not overlap; fix joint_limits"
-                )
-            if abs(fw_lower - lower) > LIMIT_MISMATCH_RAD or abs(fw_upper - upper) > LIMIT_MISMATCH_RAD:
-                log.warning(
-                    "PiPER on %s: joint_%d firmware limits [%.4f, %.4f] rad differ from the soft limits "
-                    "[%.4f, %.4f] rad; using [%.4f, %.4f]",
-                    self.link.where,
-                    j,
-                    fw_lower,
-                    fw_upper,
-                    lower,
-                    upper,
-                    *narrowed,
-                )
-            joints.append(narrowed)
-        self.limits = JointLimits(tuple(joints), self.config.limits.gripper_m)
 
     def close(self) -> None:
         """Release the bus without touching the arm (no disconnect policy)."""
@@ -536,7 +281,7 @@ class PiperDriver:
         firmware acted on before our 0x151 reaches our reader before the status that confirms it."""
         self._interlock.close("enable() is in progress")
         began = self.clock.monotonic()
-        if self._foreign_high_follow_since(min(self._mode_mark, self._high_follow_since)):
+        if self._foreign.high_follow_since(min(self._mode_mark, self._high_follow_since)):
             self._may_be_high_follow = True
         self._session_start = self._high_follow_since = began
         try:
@@ -596,12 +341,12 @@ class PiperDriver:
 
         def guard() -> None:
             estop()
-            if self._foreign_reset_since(self._resets_waited) is not None:
+            if self._foreign.reset_since(self._resets_waited) is not None:
                 raise _Restart("another host reset the arm (0x150 02)")
             if (
                 not self.config.high_follow
-                and self._foreign_high_follow_since(self._high_follow_since)
-                and self._high_follow_exit_needs_reset()
+                and self._foreign.high_follow_since(self._high_follow_since)
+                and high_follow_exit_needs_reset(self.link.state())
             ):
                 self._may_be_high_follow = True
                 raise _Restart("another host asked for high-follow (0x151 … AD)")
@@ -648,34 +393,18 @@ class PiperDriver:
         else:
             self._reset(token)
 
-    def _high_follow_exit_needs_reset(self) -> bool:
-        """Whether this firmware (older than S-V1.8-5, or of unknown version) leaves high-follow only by a reset."""
-        release = firmware_release(self.link.state().firmware_version)
-        return release is None or release < LEAVES_HIGH_FOLLOW_WITHOUT_RESET
-
-    def _foreign_modes_since(self, since: float) -> list[ModeControl]:
-        """Every distinct mode change (0x151) another host (a plugged-in leader) sent after ``since``, oldest first."""
-        payloads = self.link.cache.payloads_since(ID_MODE_CONTROL, since)
-        found = (decode_command(ID_MODE_CONTROL, data) for data, _ in payloads)
-        return [mode for mode in found if isinstance(mode, ModeControl)]
-
-    def _foreign_high_follow_since(self, since: float) -> bool:
-        """Whether another host (a plugged-in leader) asked for high-follow (0x151 … AD) after ``since``."""
-        return any(mode.mit_mode == MIT_MODE_HIGH_FOLLOW for mode in self._foreign_modes_since(since))
-
     def _is_our_mode(self, mode: ModeControl) -> bool:
         """Whether ``mode`` moves the arm as ours does (the speed matters only outside high-follow)."""
         ours = self._mode()
         same = (mode.ctrl_mode, mode.move_mode, mode.mit_mode) == (ours.ctrl_mode, ours.move_mode, ours.mit_mode)
         return same and (self.config.high_follow or mode.speed_percent == ours.speed_percent)
 
-    def _foreign_reset_since(self, since: float) -> float | None:
-        """When another host last reset the arm (0x150 02), if after ``since`` (a later e-stop hides nothing)."""
-        payloads = self.link.cache.payloads_since(ID_EMERGENCY_STOP, since)
-        return max((stamp for data, stamp in payloads if data[0] == EStopAction.RESUME), default=None)
-
     def _leave_high_follow(self, token: int) -> None:
-        if self.config.high_follow or not self._may_be_high_follow or not self._high_follow_exit_needs_reset():
+        if (
+            self.config.high_follow
+            or not self._may_be_high_follow
+            or not high_follow_exit_needs_reset(self.link.state())
+        ):
             return
         version = self.link.state().firmware_version or "of unknown version"
         if self.config.high_follow_exit == HighFollowExit.REFUSE:
@@ -703,7 +432,7 @@ class PiperDriver:
         state = self.link.state()
         target, self._reset_sent_at = self._reset_sent_at, None
         inferred = False
-        foreign = self._foreign_reset_since(self._resets_waited)
+        foreign = self._foreign.reset_since(self._resets_waited)
         if foreign is not None and (target is None or foreign > target):
             if now - foreign < settle:
                 log.warning(
@@ -727,13 +456,13 @@ class PiperDriver:
             target, inferred = now, True
         guard = self._abort_on_estop(token, "the wait for a reset's motor-off")
         while True:
-            motor_off = _MotorOff(target)
+            motor_off = MotorOff(target)
 
-            def off_or_newer(s: ArmState, at: float = target, off: _MotorOff = motor_off) -> bool:
-                return self._foreign_reset_since(at) is not None or off.seen(s)
+            def off_or_newer(s: ArmState, at: float = target, off: MotorOff = motor_off) -> bool:
+                return self._foreign.reset_since(at) is not None or off.seen(s)
 
             self._wait(guard, off_or_newer, max(target + settle - self.clock.monotonic(), 0.0))
-            newer = self._foreign_reset_since(target)
+            newer = self._foreign.reset_since(target)
             if newer is None:
                 break
             log.warning(
@@ -998,16 +727,16 @@ class PiperDriver:
     def _foreign_problem(self) -> str | None:
         """A reset, or a mode change other than ours, from another host since the enable. Commands send no
         0x151, so nothing else would put our mode back."""
-        if self._foreign_reset_since(self._resets_waited) is not None:
+        if self._foreign.reset_since(self._resets_waited) is not None:
             return (
                 f"another host reset the arm (0x150 02): its motors switch off ~{RESET_MOTOR_OFF_S:.2f} s later; "
                 "call enable()"
             )
-        modes = self._foreign_modes_since(self._mode_mark)  # every one of them, not only the latest
+        modes = self._foreign.modes_since(self._mode_mark)  # every one of them, not only the latest
         if (
             not self.config.high_follow
             and any(mode.mit_mode == MIT_MODE_HIGH_FOLLOW for mode in modes)
-            and self._high_follow_exit_needs_reset()
+            and high_follow_exit_needs_reset(self.link.state())
         ):
             self._may_be_high_follow = True
             return (
@@ -1103,24 +832,6 @@ class PiperDriver:
         return self._gripper_frame(clamp(opening, *self.limits.gripper_m), code)
 
 
-class _MotorOff:
-    """Whether feedback shows the motor-off of the reset at ``reset_at``: some joint reported enabled in a frame
-    stamped ``RESET_ACTED_WITHIN_S`` after it, then every joint reported disabled after that frame. A reset
-    restarts the countdown, so a motor-off after a frame sent once the firmware acted on the reset is its own;
-    motors not seen on then show nothing (the delay itself must pass: a motor-off just before may be an
-    earlier reset's)."""
-
-    def __init__(self, reset_at: float) -> None:
-        self.after = reset_at + RESET_ACTED_WITHIN_S
-        self.on_at: float | None = None
-
-    def seen(self, state: ArmState) -> bool:
-        for info in state.low_speed:
-            if info is not None and info.timestamp > max(self.after, self.on_at or 0.0) and info.value.enabled:
-                self.on_at = info.timestamp
-        return self.on_at is not None and _joints_disabled_since(state, self.on_at)
-
-
 class _Restart(ArmNotReadyError):
     """Another host reset the arm or asked for high-follow while ``enable`` ran: it starts over."""
 
@@ -1164,14 +875,10 @@ def _may_be_counting_down(state: ArmState) -> bool:
     return standby and any(state.joints_enabled)
 
 
-def _joints_disabled_since(state: ArmState, since: float) -> bool:
-    return all(f is not None and f.timestamp > since and not f.value.enabled for f in state.low_speed)
-
-
 def _all_disabled_since(state: ArmState, since: float) -> bool:
     gripper = state.gripper
     fresh_gripper_off = gripper is not None and gripper.timestamp > since and not gripper.value.enabled
-    return _joints_disabled_since(state, since) and fresh_gripper_off
+    return joints_disabled_since(state, since) and fresh_gripper_off
 
 
 def _disabled_parts(state: ArmState, since: float) -> list[str]:

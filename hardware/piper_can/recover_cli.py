@@ -16,8 +16,9 @@ import sys
 from typing import NoReturn
 
 from .codec import CtrlMode, MoveMode
-from .driver import DriverConfig, PiperDriver
+from .driver import PiperDriver
 from .errors import PiperError
+from .settings import DriverConfig
 from .state import ArmState
 
 PROG = "piper-recover"

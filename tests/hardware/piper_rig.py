@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 
 import can
 from piper_can.clock import SYSTEM_CLOCK, Clock, SimulatedClock
-from piper_can.driver import DriverConfig, PiperDriver
+from piper_can.driver import PiperDriver
 from piper_can.emulator import PiperEmulator
 from piper_can.firmware import EmulatorConfig, PiperFirmware, Plant
+from piper_can.settings import DriverConfig
 
 
 def unique_virtual_channel() -> str:

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from piper_can import codec, recover_cli
-from piper_can.driver import DisconnectPolicy, DriverConfig, PiperDriver
+from piper_can.driver import PiperDriver
 from piper_can.errors import (
     ArmNotReadyError,
     CanBusError,
@@ -29,6 +29,7 @@ from piper_can.errors import (
 )
 from piper_can.firmware import EmulatorConfig
 from piper_can.safety import SDK_SOFT_LIMITS, JointLimits
+from piper_can.settings import DisconnectPolicy, DriverConfig
 from piper_rig import make_rig, unique_virtual_channel
 
 PERIOD = 0.005

@@ -5,7 +5,8 @@ from __future__ import annotations
 import subprocess
 
 import pytest
-from piper_can.driver import DriverConfig, PiperDriver
+from piper_can.driver import PiperDriver
+from piper_can.settings import DriverConfig
 from piper_processes import BIN, start_emulator
 from piper_rig import unique_udp_channel, wait_until
 

@@ -23,10 +23,10 @@ from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperLeader,
 from lerobot_robot_piper.motion_metadata import MotionMode, read_motion_mode, write_motion_mode
 from piper_can import codec
 from piper_can.clock import SimulatedClock
-from piper_can.driver import DriverSettings
 from piper_can.emulator import PiperEmulator
 from piper_can.errors import EnableTimeoutError, FeedbackStaleError, FirmwareFaultError, PiperConnectionError
 from piper_can.firmware import EmulatorConfig
+from piper_can.settings import DriverSettings
 from piper_rig import unique_virtual_channel
 
 KEYS = ["joint_1.pos", "joint_2.pos", "joint_3.pos", "joint_4.pos", "joint_5.pos", "joint_6.pos", "gripper.pos"]

@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 import pytest
-from piper_can.driver import DriverConfig
 from piper_can.safety import safe_target
+from piper_can.settings import DriverConfig
 
 
 @pytest.mark.parametrize(
