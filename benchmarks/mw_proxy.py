@@ -83,6 +83,9 @@ def config_spec(cfg: PipelineConfig) -> dict[str, Any]:
     def strip(value: Any) -> Any:
         return {k: strip(v) for k, v in value.items() if k != "output_dir"} if isinstance(value, dict) else value
 
+    # the demo settings left to the world (null) as the world resolves them, as the demos stage records them
+    demos = dataclasses.replace(cfg.demos, world=cfg.world, tasks=cfg.tasks).resolved()
+    cfg = dataclasses.replace(cfg, demos=dataclasses.replace(demos, world=cfg.demos.world, tasks=cfg.demos.tasks))
     return without_added_settings(strip(settings_spec(cfg, exclude=("seed", "stop_after"))))
 
 
