@@ -20,8 +20,8 @@ per-frame episode metadata that LeRobot's tools carry along: ``<world>.task`` (t
 are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other settings, or anything else, is
 refused.
 
-**An existing dataset instead** (``dataset_root``, with its ``repo_id``): for a world without a scripted expert
-(LIBERO) the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
+**An existing dataset instead** (``dataset_root``, with its ``repo_id``): for tasks without a scripted expert, or
+a user's own data, the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
 (LeRobot downloads it into ``dataset_root`` when the folder lacks it and the Hub is reachable). Nothing is
 generated: :class:`DatasetStage` checks that the dataset fits the world (``observation.state`` and ``action``
 shapes, camera names) and holds every task the run names (by language description), and IL trains on it. LeRobot's

@@ -7,9 +7,10 @@ One draccus config holds a section per stage: ``demos`` (:class:`~lerobot_cso.de
 top-level ``tasks`` and ``output_dir`` propagate to every stage (setting them, or ``policy``, inside a
 section is refused); each stage's policy is the previous one's.
 
-The demo stage generates scripted MetaWorld demonstrations, or, with ``demos.dataset_root`` (and
-``demos.repo_id``), checks an existing LeRobotDataset and hands it to IL instead: the way to run on LIBERO,
-which has no scripted expert (``--tasks=libero_spatial --demos.dataset_root=... --demos.repo_id=...``).
+The demo stage generates demonstrations with the world's scripted expert (MetaWorld's; LIBERO-Object's), or, with
+``demos.dataset_root`` (and ``demos.repo_id``), checks an existing LeRobotDataset and hands it to IL instead: the
+way to run on tasks without an expert, or on one's own data (``--tasks=libero_spatial --demos.dataset_root=...
+--demos.repo_id=...``).
 
 Layout of ``output_dir``: ``demos/`` (the generated LeRobotDataset), ``il/`` (``lerobot-train``'s output
 dir), ``rsft/``, ``spo/``, ``eval/{il,rsft,cso}/``, ``stages/<stage>.json`` (the settings each stage ran with,
