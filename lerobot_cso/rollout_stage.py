@@ -130,9 +130,12 @@ def check_policy_fits(policy: Any, world: World) -> None:
     robot), before any env is made; a world that does not say its sizes (a robot) is not checked here."""
     features = {**(getattr(policy, "input_features", None) or {}), **(getattr(policy, "output_features", None) or {})}
     for key, attribute in (("observation.state", "state_dims"), ("action", "action_dim")):
-        if key not in features or getattr(world, attribute, None) is None:
+        try:
+            allowed = getattr(world, attribute, None) if key in features else None
+        except ValueError as e:  # a world whose simulator is not installed (LIBERO's says how to install it)
+            raise UsageError(str(e)) from None
+        if allowed is None:
             continue
-        allowed = getattr(world, attribute)
         allowed = allowed if isinstance(allowed, tuple) else (allowed,)
         shape = tuple(features[key].shape)
         if shape not in [(n,) for n in allowed]:
