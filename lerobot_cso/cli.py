@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lerobot_cso.errors import UsageError, check_config_path, interrupted_where, parse_errors_as_usage_errors
+from lerobot_cso.stage import POLICY_ROLES
 
 ROBOT_WORLD_FIELDS = ("robot", "teleop", "operator", "display_data")  # --world.<field>, spelt --<field> for short
 ROLLOUT_STAGES = ("eval", "rsft", "spo")
@@ -125,6 +126,10 @@ def main(argv: list[str] | None = None) -> int:
     unlisted = unlisted_options(rest, kept.read_text()) if kept.is_file() else []
     if unlisted:
         print(f"error: unrecognized arguments: {' '.join(unlisted)}", file=sys.stderr)
+        return 2
+    given = {a.lstrip("-").split("=")[0].split(".")[0] for a in rest if a.startswith("-")}
+    if name in POLICY_ROLES and not given & {"policy", "config_path", "h", "help"}:  # said as validate() says it
+        print(f"error: --policy.path is required ({POLICY_ROLES[name]})", file=sys.stderr)
         return 2
     try:
         check_config_path(rest)

@@ -26,7 +26,7 @@ from lerobot_cso.errors import UsageError, check_output_dir
 from lerobot_cso.rollout.engine import RolloutEngine, SkillPolicy
 from lerobot_cso.rollout.pool import VECTORIZATIONS
 from lerobot_cso.sampling import Sampling
-from lerobot_cso.stage import PIPELINE_FIELDS, settings_spec
+from lerobot_cso.stage import PIPELINE_FIELDS, POLICY_ROLES, settings_spec
 from lerobot_cso.worlds.base import Rollouts, World, WorldConfig, camera_inputs
 from lerobot_cso.worlds.registry import default_world
 
@@ -39,7 +39,7 @@ class RolloutStageConfig(PolicyPathConfig):
     """Base of ``EvalConfig`` and of the training stages' ``TrainingStageConfig``."""
 
     # What --policy.path must point at, for the error message when it is missing.
-    policy_role: ClassVar[str] = "a directory written by save_pretrained"
+    policy_role: ClassVar[str] = POLICY_ROLES["eval"]
     # Whether the stage keeps every frame of an episode (R-SFT's buffer does); a world may then render only
     # the frames a decision needs.
     records_frames: ClassVar[bool] = True

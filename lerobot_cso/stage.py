@@ -15,6 +15,13 @@ from pathlib import Path
 from typing import Any, Protocol
 
 PIPELINE_FIELDS = ("tasks", "output_dir", "policy", "world")  # set by the pipeline for every stage, not part of a spec
+# What --policy.path must point at, per rollout command (its error when missing, which lerobot-cso says before importing
+# the command).
+POLICY_ROLES = {
+    "eval": "a directory written by save_pretrained",
+    "rsft": "the IL checkpoint's pretrained_model directory",
+    "spo": "the R-SFT checkpoint's pretrained_model directory",
+}
 # Settings added after outputs had been recorded without them, at the values that behave as before they existed:
 # a record that lacks one is the same spec as one holding that value, so older outputs still resume (another
 # value is another spec). A new setting whose default keeps the old behaviour is added here with that default.

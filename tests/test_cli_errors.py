@@ -345,8 +345,9 @@ def test_help_and_a_misspelt_subcommand_import_neither_torch_nor_lerobot():
 
 
 def test_a_stages_help_and_an_unknown_option_answer_without_torch_once_the_help_is_kept(tmp_path, monkeypatch, capsys):
-    """Issue 58, item 8: ``lerobot-cso spo --help`` and a misspelt option took 6-8 s each (torch and LeRobot
-    imported first); the help is now kept once made, and both answer from it without those imports."""
+    """Issue 58, item 8: ``lerobot-cso spo --help``, a misspelt option and ``eval`` with no arguments took 6-8 s each
+    (torch and LeRobot imported first); the help is now kept once made, the first two answer from it, and a missing
+    ``--policy.path`` is said before the imports."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setattr(sys, "argv", list(sys.argv))
     assert cli.main(["spo", "--help"]) == 0  # made (here, where torch is imported already) and kept
@@ -354,14 +355,18 @@ def test_a_stages_help_and_an_unknown_option_answer_without_torch_once_the_help_
     assert "--iterations int" in made and cli.help_cache("spo").read_text() == made
     code = (
         "import sys; from lerobot_cso import cli; assert cli.main(['spo', '--help']) == 0; "
-        "assert cli.main(['spo', '--iteratoins=3', '--tasks=reach-v3']) == 2; "
+        "assert cli.main(['spo', '--iteratoins=3', '--tasks=reach-v3']) == 2; assert cli.main(['eval']) == 2; "
         "print(sorted(m for m in ('torch', 'lerobot.configs', 'metaworld') if m in sys.modules), file=sys.stderr)"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code], env=os.environ, capture_output=True, text=True, timeout=120, check=False
     )
     assert proc.returncode == 0 and proc.stdout == made, proc.stderr
-    assert proc.stderr.splitlines() == ["error: unrecognized arguments: --iteratoins=3", "[]"]
+    assert proc.stderr.splitlines() == [
+        "error: unrecognized arguments: --iteratoins=3",
+        "error: --policy.path is required (a directory written by save_pretrained)",  # as validate() says it
+        "[]",
+    ]
 
 
 def test_one_writer_per_output_dir_and_the_trainer_dies_with_its_pipeline(tmp_path):

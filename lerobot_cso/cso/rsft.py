@@ -61,7 +61,7 @@ from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig, policy_features
 from lerobot_cso.sampling import Sampling
-from lerobot_cso.stage import CheckpointStage, without_added_settings
+from lerobot_cso.stage import POLICY_ROLES, CheckpointStage, without_added_settings
 from lerobot_cso.worlds.base import camera_inputs
 
 TASK_KEY, SEED_KEY, ATTEMPT_KEY, TEMPERATURE_KEY = "rsft.task", "rsft.init_seed", "rsft.attempt", "rsft.temperature"
@@ -76,7 +76,7 @@ def _rsft_sampling() -> Sampling:
 class RSFTConfig(TrainingStageConfig):
     """Settings of ``lerobot-cso rsft --policy.path=<IL checkpoint> --tasks=MT10 --output_dir=...``."""
 
-    policy_role: ClassVar[str] = "the IL checkpoint's pretrained_model directory"
+    policy_role: ClassVar[str] = POLICY_ROLES["rsft"]
 
     output_dir: Path = Path("outputs/rsft")
     sampling: Sampling = field(default_factory=_rsft_sampling)

@@ -61,7 +61,7 @@ from lerobot_cso.records import run_alone
 from lerobot_cso.rollout.engine import Episode, InitialState, RolloutEngine
 from lerobot_cso.rollout_stage import TrainingStageConfig
 from lerobot_cso.sampling import Sampling
-from lerobot_cso.stage import CheckpointStage
+from lerobot_cso.stage import POLICY_ROLES, CheckpointStage
 
 LOG_COLUMNS = (
     "iteration",
@@ -95,7 +95,7 @@ UPDATE_STATS = (
 class SPOConfig(TrainingStageConfig):
     """Settings of ``lerobot-cso spo --policy.path=<R-SFT checkpoint> --tasks=MT10 --output_dir=...``."""
 
-    policy_role: ClassVar[str] = "the R-SFT checkpoint's pretrained_model directory"
+    policy_role: ClassVar[str] = POLICY_ROLES["spo"]
     records_frames: ClassVar[bool] = False  # the update reads the cached encoder contexts only
 
     output_dir: Path = Path("outputs/spo")
