@@ -143,9 +143,8 @@ class DemosConfig:
         if self.dataset_root is not None:
             return check_dataset(self)[0]
         check_output_dir(self.output_dir)
-        world = self.world_settings().build(self.tasks, None, None)
-        tasks = _resolve(world, self.tasks)
         expert = self.expert()
+        tasks = _resolve(self.world_settings().build(self.tasks, None, None), self.tasks)
         try:
             expert.check_tasks(tasks)
         except ValueError as e:

@@ -16,7 +16,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from metaworld_fixtures import DEMO_EPISODES, DEMO_TASKS, make_demos, shared_demos
 
 from lerobot_cso import cli, seeds
+from lerobot_cso.demos import DemosConfig
+from lerobot_cso.errors import UsageError
 from lerobot_cso.worlds.metaworld.tasks import task_description
+from lerobot_cso.worlds.robot.config import RobotWorldConfig
 
 
 @pytest.fixture(scope="module")
@@ -198,3 +201,14 @@ def test_a_given_dataset_is_checked_and_left_as_it_is(demos, capsys, monkeypatch
     code, err = run_cli(["demos", "--tasks=drawer-close-v3,reach-v3", f"--dataset_root={demos}"], capsys)
     assert code == 2 and err.startswith(f"error: {demos} has no episodes of drawer-close-v3 (by task description)")
     assert {p: p.stat().st_mtime_ns for p in demos.rglob("*")} == stamp
+
+
+def test_the_demo_expert_is_the_worlds(tmp_path):
+    """``--world.type`` picks the expert (its defaults fill the settings left unset); a world without one is one line
+    naming the way out, before the world is built (the robot world would first ask for a robot)."""
+    metaworld = DemosConfig(tasks="reach-v3", output_dir=tmp_path / "mw").resolved()
+    assert (metaworld.noise_std, metaworld.image_size, metaworld.max_steps) == (0.2, 128, 500)
+    libero = DemosConfig(tasks="libero_object-0", output_dir=tmp_path / "libero").resolved()
+    assert (libero.noise_std, libero.image_size, libero.max_steps) == (0.05, 128, 280)
+    with pytest.raises(UsageError, match="^robot has no scripted expert to generate demos: give a LeRobotDataset"):
+        DemosConfig(world=RobotWorldConfig(), tasks="press", output_dir=tmp_path / "robot").validate()
