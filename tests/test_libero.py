@@ -347,3 +347,12 @@ def test_the_libero_pipeline_config_validates_with_a_dataset(tiny_dataset, tmp_p
     demos = dataclasses.replace(cfg.demos, dataset_root=tiny_dataset, repo_id=REPO_ID)
     ours = dataclasses.replace(cfg, tasks=DRAWER_TASK, output_dir=tmp_path / "run", demos=demos)
     assert Pipeline(ours).tasks == [DRAWER_TASK]  # every section checked, as before a real run
+
+
+def test_the_libero_object_config_needs_no_dataset(tmp_path):
+    """configs/libero_object.yaml passes the pipeline's checks with no dataset flag: its demos stage generates them."""
+    with open(Path(__file__).parents[1] / "configs" / "libero_object.yaml") as f:
+        cfg = draccus.load(PipelineConfig, f)
+    pipeline = Pipeline(dataclasses.replace(cfg, output_dir=tmp_path / "run"))
+    assert pipeline.tasks == ["libero_object-0", "libero_object-1", "libero_object-2"]
+    assert cfg.demos.dataset_root is None and pipeline.demos_config().resolved().max_steps == 280
