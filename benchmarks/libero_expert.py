@@ -53,7 +53,7 @@ def main() -> None:
         generate_demos(cfg)
         record["tasks"][task] = task_row(cfg) | {"seconds": round(time.time() - start)}
         record |= provenance() | {"settings": cfg.spec()}
-        write_atomic(args.results, json.dumps(record, indent=1) + "\n")
+        write_atomic(args.results, (json.dumps(record, indent=1) + "\n").encode())
         row = record["tasks"][task]
         print(f"{task:20s} {row['successes']:3d}/{row['episodes']:3d}  {row['rate']:.0%} ± {row['se']:.0%}", flush=True)
 
