@@ -19,7 +19,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_pre_post_processors
 from safetensors.torch import load_file
-from tiny_data import TINY_POLICY_ARGS, TINY_POLICY_KWARGS
+from tiny_data import TINY_POLICY_KWARGS
 
 from lerobot_cso import cli
 from lerobot_cso.checkpoints import load_policy
@@ -40,7 +40,8 @@ BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
 TASK = "reach-v3"
 SIZE = 480  # LeRobot's MetaWorld frames
-RESIZE = 32  # what the tiny policy's encoder reads
+RESIZE = 32  # what the tiny policies' encoders read
+DEFAULT_FIT = 128  # what a policy with no image setting reads
 
 
 def make_lerobot_metaworld_dataset(
@@ -74,13 +75,26 @@ def make_lerobot_metaworld_dataset(
     return ds
 
 
-def test_image_resize_is_off_in_config_files_without_it(tmp_path):
-    """A config.json written before ``image_resize`` existed loads with the resize off; a size below 1 is refused."""
-    CSOConfig(device="cpu")._save_pretrained(tmp_path)
+def test_config_files_written_before_a_setting_load_with_its_default_of_their_day(tmp_path):
+    """A config.json written before ``image_resize`` (then ``image_backbone``) existed loads its weights as it was
+    trained, the resize off and QueST's ResNet-18 stem, not today's defaults (a fit to 128, the conv net on a CPU);
+    a size below 1 is refused."""
+    features = {"observation.image": PolicyFeature(FeatureType.VISUAL, (3, 136, 136))}
+    config = CSOConfig(
+        **TINY_POLICY_KWARGS,
+        device="cpu",
+        image_backbone="resnet18",
+        image_resize=None,
+        input_features=features,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
+    )
+    CSOPolicy(config).save_pretrained(tmp_path)
     saved = json.loads((tmp_path / "config.json").read_text())
-    del saved["image_resize"]
+    del saved["image_resize"], saved["image_backbone"], saved["image_fit"]
     (tmp_path / "config.json").write_text(json.dumps(saved))
-    assert CSOConfig.from_pretrained(tmp_path).image_resize is None
+    policy = CSOPolicy.from_pretrained(tmp_path)
+    assert (policy.config.image_resize, policy.config.image_backbone) == (None, "resnet18")
+    assert policy.encoders.images["observation__image"].resize is None
     with pytest.raises(ValueError, match="image_resize must be >= 1"):
         CSOConfig(image_resize=0)
 
@@ -104,7 +118,9 @@ def test_our_corner2_is_lerobots_view():
 
 
 @pytest.mark.slow
-def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_path):
+def test_lerobot_metaworld_dataset_trains_with_only_budget_flags_and_runs_in_our_world(tmp_path):
+    """No image setting: the 480² frames reach the encoder fitted to 128² (QueST's size), through the conv net on a
+    CPU, the choice saved in config.json, and the first training batch logs what the encoders cost."""
     data = tmp_path / "data"
     ds = make_lerobot_metaworld_dataset(data)
     assert ds.meta.video_keys == ["observation.image"] and ds.meta.fps == 80
@@ -115,7 +131,6 @@ def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_
         "--policy.type=cso",
         "--dataset.repo_id=local/lerobot_metaworld",
         f"--dataset.root={data}",
-        "--dataset.video_backend=pyav",
         f"--output_dir={out}",
         "--steps=4",
         "--save_freq=4",
@@ -123,21 +138,22 @@ def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_
         "--num_workers=0",
         "--log_freq=1",
         "--policy.n_autoencoder_steps=2",
-        "--policy.image_backbone=conv",
-        f"--policy.image_resize={RESIZE}",
-        *TINY_POLICY_ARGS,
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=300)
+    log = proc.stdout + proc.stderr
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "step:4 " in proc.stdout + proc.stderr and "nll:" in proc.stdout + proc.stderr  # the prior trained too
+    assert "step:4 " in log and "nll:" in log  # the prior trained too
+    assert "cso policy on a CPU: the camera encoders (conv; observation.image 480×480 → 128×128) took" in log
     model = out / "checkpoints" / "last" / "pretrained_model"
     config = json.loads((model / "config.json").read_text())
     features = {k: v["shape"] for k, v in config["input_features"].items()}
     assert features == {"observation.image": [3, SIZE, SIZE], "observation.state": [4]}
-    assert config["image_resize"] == RESIZE
-    # The encoder trained on the resized frames: its keypoint grid is the conv net's (stride 4) map of a 32² image.
+    assert (config["image_backbone"], config["image_resize"], config["image_fit"]) == ("conv", DEFAULT_FIT, "crop")
+    # The encoder trained on the fitted frames: its keypoint grid is the conv net's (stride 4) map of a 128² image.
     grid = load_file(model / "model.safetensors")["encoders.images.observation__image.keypoints.pos_grid"]
-    assert grid.shape == ((RESIZE // 4) ** 2, 2)
+    assert grid.shape == ((DEFAULT_FIT // 4) ** 2, 2)
 
     # Our world gives the policy what it reads: LeRobot's corner2 view at 480², the 4-d hand state.
     policy, pre, post = load_policy(model)
@@ -152,7 +168,7 @@ def test_lerobot_metaworld_dataset_trains_with_resize_and_runs_in_our_world(tmp_
         result = engine.rollout([(TASK, s) for s in world.eval_states(TASK, 0, 2)], keep_frames=[0])
     assert len(result.episodes) == 2 and result.decisions >= 2
     assert read and set(read) == {(2, 3, SIZE, SIZE)}  # both envs' frames at the dataset's size ...
-    assert set(encoded) == {(2, 3, RESIZE, RESIZE)}  # ... resized before the encoder's conv net
+    assert set(encoded) == {(2, 3, DEFAULT_FIT, DEFAULT_FIT)}  # ... fitted before the encoder's conv net
     first = result.episodes[0]
     assert first.states.shape[-1] == 4 and first.images[LEROBOT_CAMERA].shape[1:] == (SIZE, SIZE, 3)
     env = CSOMetaWorldEnv(TASK, cameras=(LEROBOT_CAMERA,), image_size=SIZE, state="hand")

@@ -221,3 +221,69 @@ def test_decoding_a_prefix_equals_the_prefix_of_the_full_chunk(policy):
     tokens, _ = policy.sample_skills(policy.encode_context(batch_of(3)))
     full = policy.decode_skills(tokens)
     torch.testing.assert_close(policy.decode_skills(tokens, 8), full[:, :8], atol=1e-5, rtol=0)
+
+
+def test_fit_keeps_the_aspect_by_a_centre_crop_or_a_pad():
+    """``image_resize`` fits a non-square frame keeping its aspect (it squashed it to a square): the geometry of a
+    640×480 frame at 128, and on small frames, by hand, which pixels a crop keeps and where a pad's border goes."""
+    from lerobot_cso.policy.observation_encoder import fit_geometry, fit_images
+
+    assert fit_geometry(480, 640, 128, "crop") == ((128, 171), (128, 128))  # 640 · 128/480 = 170.7
+    assert fit_geometry(480, 640, 128, "pad") == ((96, 128), (128, 128))
+    assert fit_geometry(480, 480, 128, "crop") == fit_geometry(480, 480, 128, "pad") == ((128, 128), (128, 128))
+    assert fit_geometry(64, 48, 128, "crop") == fit_geometry(64, 48, 128, "pad") == ((64, 48), (64, 48))  # fits
+
+    columns = torch.arange(8.0).expand(1, 1, 4, 8)  # a 4×8 frame whose pixels hold their column index
+    torch.testing.assert_close(fit_images(columns, 4, "crop"), columns[..., 2:6])  # the middle 4 columns, unscaled
+    ones = torch.ones(1, 3, 6, 8)  # 6×8 → ×½ = 3×4, centred in 4×4: a top border of 0 rows, a bottom one of 1
+    padded = fit_images(ones, 4, "pad")
+    assert padded.shape == (1, 3, 4, 4)
+    torch.testing.assert_close(padded[..., :3, :], torch.ones(1, 3, 3, 4))
+    torch.testing.assert_close(padded[..., 3:, :], torch.zeros(1, 3, 1, 4))
+    cropped = fit_images(ones, 4, "crop")  # 6×8 → ×⅔ = 4×5, centre 4×4
+    assert cropped.shape == (1, 3, 4, 4) and torch.allclose(cropped, torch.ones_like(cropped))
+    small = torch.rand(1, 3, 3, 4)
+    assert fit_images(small, 4, "crop") is small and fit_images(small, 4, "pad") is small  # never enlarged
+
+
+def test_defaults_fit_a_large_camera_to_128_with_the_backbone_for_the_device():
+    """With no image setting a 640×480 camera reaches the encoder at 128² (the conv net on a CPU, QueST's ResNet-18
+    stem elsewhere), and the resolved backbone is what config.json holds; explicit settings win."""
+    from lerobot_cso.policy.observation_encoder import auto_backbone
+
+    camera = {"observation.images.cam": PolicyFeature(FeatureType.VISUAL, (3, 480, 640))}
+    cfg = tiny_config(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (6,)), **camera})
+    assert (cfg.image_backbone, cfg.image_resize, cfg.image_fit) == ("conv", 128, "crop")
+    policy = CSOPolicy(cfg)
+    seen = []
+    encoder = policy.encoders.images["observation__images__cam"]
+    encoder.backbone.register_forward_pre_hook(lambda _, args: seen.append(tuple(args[0].shape)))
+    policy.encode_context({**batch_of(2), "observation.images.cam": torch.rand(2, 3, 480, 640)})
+    assert seen == [(2, 3, 128, 128)]
+    assert auto_backbone("cuda") == auto_backbone("cuda:1") == auto_backbone("mps") == "resnet18"  # the paper's
+    explicit = tiny_config(image_backbone="resnet18", image_resize=None)
+    assert (explicit.image_backbone, explicit.image_resize) == ("resnet18", None)
+    with pytest.raises(ValueError, match="image_resize must be <= 4096"):
+        tiny_config(image_resize=100_000)
+    with pytest.raises(ValueError, match="image_fit must be one of"):
+        tiny_config(image_fit="stretch")
+
+
+def test_first_training_batch_on_a_cpu_logs_the_encoders_cost_and_keeps_no_gradient(caplog):
+    """The first training forward on a CPU logs what the camera encoders cost on that batch and how to make it
+    cheaper, without leaving gradients or moving the random state."""
+    camera = {"observation.images.cam": PolicyFeature(FeatureType.VISUAL, (3, 32, 32))}
+    cfg = tiny_config(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (6,)), **camera})
+    policy = CSOPolicy(cfg).train()
+    batch = {**batch_of(2), "observation.images.cam": torch.rand(2, 3, 32, 32), "action": torch.randn(2, 32, 3)}
+    torch.manual_seed(5)
+    with caplog.at_level("INFO"):
+        policy.forward(batch)
+    after = torch.rand(1)
+    torch.manual_seed(5)
+    policy.forward(batch)
+    assert torch.equal(torch.rand(1), after)  # the measurement drew nothing from the random state
+    [line] = [r.getMessage() for r in caplog.records if "cso policy on a CPU" in r.getMessage()]
+    assert "(conv; observation.images.cam 32×32) took" in line and "batch of 2" in line, line
+    assert "cheaper: a GPU" in line  # conv at 32²: nothing cheaper to suggest but the device
+    assert all(p.grad is None for p in policy.parameters())

@@ -16,7 +16,7 @@ from torch.optim.lr_scheduler import LambdaLR
 
 from lerobot_cso.errors import check_number
 from lerobot_cso.policy.fast_prior import WEIGHT_FORMATS
-from lerobot_cso.policy.observation_encoder import IMAGE_BACKBONES
+from lerobot_cso.policy.observation_encoder import IMAGE_BACKBONES, IMAGE_FITS, auto_backbone
 from lerobot_cso.sampling import Sampling
 
 SKILL_TOKENS_KEY = "observation.skill_tokens"
@@ -25,6 +25,9 @@ SKILL_STEP_KEY = "observation.skill_step"
 # Integer bookkeeping columns of the R-SFT buffer: they reach `forward` because their names start with
 # `observation.`, but they are no policy inputs (no normalisation, no encoder).
 SKILL_COLUMNS = (SKILL_TOKENS_KEY, SKILL_START_KEY, SKILL_STEP_KEY)
+# The largest image_resize accepted: a 4K frame's longer side (100 000 once tried to allocate 120 GB, when the
+# resize still enlarged frames).
+MAX_IMAGE_RESIZE = 4096
 
 
 @LRSchedulerConfig.register_subclass("cso_two_phase")
@@ -96,14 +99,25 @@ class CSOConfig(PreTrainedConfig):
     ae_dropout: float = 0.1
     fsq_levels: list[int] = field(default_factory=lambda: [8, 5, 5, 5])
 
-    # Observation encoders. image_backbone: "resnet18" (QueST's stem + layer1 + layer2, the paper size) or "conv"
-    # (a four-layer conv net that trains on two CPU cores, docs/cso-on-cpu.md); image_shift: random-shift
-    # augmentation in pixels while training (QueST's; 0 = off); image_resize: the side the camera images are resized
-    # to (antialiased) before the encoder, in training and inference alike, e.g. 64 for LeRobot's 480² MetaWorld
-    # frames (None = off: the images enter the encoder at the dataset's size).
-    image_backbone: str = "resnet18"
+    # Observation encoders. image_backbone: "resnet18" (QueST's stem + layer1 + layer2, the paper size), "conv" (a
+    # four-layer conv net that trains on two CPU cores, docs/cso-on-cpu.md) or "auto" (the default: resnet18 on a GPU,
+    # conv on a CPU, where a training step at batch 32 on 128² frames took 1.13 s of one core with the stem against 0.65
+    # with conv, docs/own-data.md; resolved when the config is made, so config.json names the backbone its weights are
+    # for).
+    image_backbone: str = "auto"
+    # Random-shift augmentation in pixels while training (QueST's; 0 = off).
     image_shift: int = 0
-    image_resize: int | None = None
+    # Camera frames larger than image_resize² are fitted to it (image_fit) before the encoder, their aspect kept, in
+    # training and inference alike; frames that fit are left as they are (never enlarged). Default 128, QueST's size:
+    # a 480² LeRobot MetaWorld frame becomes 128². null: off, the frames enter the encoder at the dataset's size.
+    image_resize: int | None = 128
+    # How a frame larger than image_resize² is fitted: "crop" scales it (antialiased) until its shorter side is
+    # image_resize and keeps the centre square (a 640×480 frame: its middle 480 columns, at 128²); "pad" scales it
+    # until its longer side is image_resize and centres it on a border of the dataset's mean colour (640×480: 128×96 of
+    # picture in 128²). Measured for the default, crop: in the PiPER twin's 640×480 front camera every object placement
+    # of its scenes lies in the middle 480 columns, so a crop loses none and gives each object 4/3 the pixels per side
+    # a pad would (docs/own-data.md); use "pad" where a camera shows the task near its left or right edge.
+    image_fit: str = "crop"
     image_keypoints: int = 128
     image_embed_dim: int = 256
     state_embed_dim: int = 128
@@ -165,12 +179,21 @@ class CSOConfig(PreTrainedConfig):
         check("optimizer_weight_decay", self.optimizer_weight_decay, ge=0)
         check("optimizer_grad_clip_norm", self.optimizer_grad_clip_norm, gt=0)
         check("scheduler_warmup_steps", self.scheduler_warmup_steps, ge=0)
+        if self.image_backbone == "auto":
+            self.image_backbone = auto_backbone(self.device)
         if self.image_backbone not in IMAGE_BACKBONES:
-            raise ValueError(f"image_backbone must be one of {IMAGE_BACKBONES}, got {self.image_backbone!r}")
+            raise ValueError(f"image_backbone must be one of {('auto', *IMAGE_BACKBONES)}, got {self.image_backbone!r}")
         if self.image_shift < 0:
             raise ValueError(f"image_shift must be >= 0, got {self.image_shift}")
+        if self.image_fit not in IMAGE_FITS:
+            raise ValueError(f"image_fit must be one of {IMAGE_FITS}, got {self.image_fit!r}")
         if self.image_resize is not None and self.image_resize < 1:
             raise ValueError(f"image_resize must be >= 1 (or null: no resize), got {self.image_resize}")
+        if self.image_resize is not None and self.image_resize > MAX_IMAGE_RESIZE:
+            raise ValueError(
+                f"image_resize must be <= {MAX_IMAGE_RESIZE} (frames are never enlarged: a larger one changes "
+                f"nothing), got {self.image_resize}"
+            )
         if self.inference_weights not in WEIGHT_FORMATS:
             raise ValueError(f"inference_weights must be one of {WEIGHT_FORMATS}, got {self.inference_weights!r}")
         if not 0 <= self.async_decode_lead < self.n_action_steps:

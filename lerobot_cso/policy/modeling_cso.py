@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import time
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -20,12 +23,14 @@ from lerobot_cso.policy.configuration_cso import (
     CSOConfig,
 )
 from lerobot_cso.policy.fast_prior import FastSkillSampler
-from lerobot_cso.policy.observation_encoder import ContextEncoder
+from lerobot_cso.policy.observation_encoder import ContextEncoder, fit_geometry
 from lerobot_cso.policy.skill_autoencoder import SkillAutoencoder
 from lerobot_cso.policy.skill_prior import SkillPrior, filtered_log_probs, token_logprob
 from lerobot_cso.sampling import FULL, Sampling
 
 _NO_DECAY = (nn.LayerNorm, nn.GroupNorm, nn.BatchNorm2d, nn.Embedding)
+# What a config.json written before a setting existed meant by leaving it out (its default then).
+LEGACY_DEFAULTS = {"image_backbone": "resnet18", "image_resize": None}
 
 
 def skill_nll(logits: Tensor, tokens: Tensor, mask: Tensor | None = None, reduction: str = "mean") -> Tensor:
@@ -87,6 +92,7 @@ class CSOPolicy(PreTrainedPolicy):
             image_backbone=config.image_backbone,
             image_shift=config.image_shift,
             image_resize=config.image_resize,
+            image_fit=config.image_fit,
         )
         self.prior = SkillPrior(
             vocab_size=config.vocab_size,
@@ -101,13 +107,21 @@ class CSOPolicy(PreTrainedPolicy):
         self._task_ids = {task: i for i, task in enumerate(config.tasks)}
         self.set_encoders_frozen(config.freeze_encoders)
         self._decode_process: DecodeProcess | None = None  # with async_decode_lead > 0: see select_action
+        self._cost_reported = False  # see _report_cpu_cost
         self.reset()
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path: str | Path, *, config: CSOConfig | None = None, **kwargs):
-        """Load a checkpoint; a dataset/env whose feature shapes differ from the checkpoint is a clear error."""
-        if config is not None and Path(pretrained_name_or_path).is_dir():
-            saved = CSOConfig.from_pretrained(pretrained_name_or_path)
+        """Load a checkpoint; a dataset/env whose feature shapes differ from the checkpoint is a clear error, and a
+        config.json older than a setting gets that setting's default of its day (:data:`LEGACY_DEFAULTS`)."""
+        path = Path(pretrained_name_or_path)
+        if path.is_dir():
+            written = json.loads((path / "config.json").read_text())
+            saved = CSOConfig.from_pretrained(path)
+            config = config or saved
+            for key, value in LEGACY_DEFAULTS.items():
+                if key not in written:
+                    setattr(config, key, value)
             for key, ft in {**saved.input_features, **saved.output_features}.items():
                 new = {**config.input_features, **config.output_features}.get(key)
                 if key not in SKILL_COLUMNS and new is not None and tuple(new.shape) != tuple(ft.shape):
@@ -254,12 +268,48 @@ class CSOPolicy(PreTrainedPolicy):
         if self._decode_process is None:
             self._decode_process = DecodeProcess(self)
 
+    def _report_cpu_cost(self, batch: dict[str, Any]) -> None:
+        """On a CPU, at the first training batch: time the camera encoders' forward and backward on it (after a
+        two-image warm-up; no gradient kept, batch statistics and random state restored) and log what it costs
+        and how to make it cheaper."""
+        images = self.encoders.images
+        trained = [p for p in images.parameters() if p.requires_grad]
+        if not self.encoders.image_keys or not trained or batch[self.encoders.image_keys[0]].device.type != "cpu":
+            return
+        buffers = {name: b.clone() for name, b in images.named_buffers()}
+        with torch.random.fork_rng(devices=[]):  # the CPU's random state (the batch is on the CPU)
+            for rows in (slice(0, 2), slice(None)):
+                start = time.perf_counter()
+                encoded = self.encoders.encode_images({key: batch[key][rows] for key in self.encoders.image_keys})
+                torch.autograd.grad(sum(e.sum() for e in encoded), trained)
+                seconds = time.perf_counter() - start
+        with torch.no_grad():
+            for name, b in images.named_buffers():
+                b.copy_(buffers[name])
+        cfg, frames, largest = self.config, [], 0
+        for key in self.encoders.image_keys:
+            shape = tuple(batch[key].shape[-2:])
+            read = shape if cfg.image_resize is None else fit_geometry(*shape, cfg.image_resize, cfg.image_fit)[1]
+            frames.append(f"{key} {shape[0]}×{shape[1]}" + ("" if read == shape else f" → {read[0]}×{read[1]}"))
+            largest = max(largest, *read)
+        cheaper = [] if cfg.image_backbone == "conv" else ["--policy.image_backbone=conv"]
+        cheaper += ["--policy.image_resize=64"] if largest > 64 else []
+        logging.info(
+            f"cso policy on a CPU: the camera encoders ({cfg.image_backbone}; {', '.join(frames)}) took "
+            f"{seconds:.2f} s forward and backward on this batch of {len(batch[self.encoders.image_keys[0]])}, a "
+            "cost every skill-prior step pays (autoencoder steps read no image); cheaper: "
+            + ", ".join([*cheaper, "a GPU"])
+        )
+
     @property
     def in_autoencoder_phase(self) -> bool:
         return int(self.autoencoder_steps_done) < self.config.n_autoencoder_steps
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """Phase 1: autoencoder L1 reconstruction; phase 2: prior NLL on frozen-autoencoder (or stored) tokens."""
+        if self.training and not self._cost_reported:
+            self._cost_reported = True
+            self._report_cpu_cost(batch)
         if SKILL_TOKENS_KEY not in batch and self.in_autoencoder_phase:
             reconstruction, tokens = self.autoencoder(batch[ACTION])
             loss = masked_l1(reconstruction, batch[ACTION], batch.get("action_is_pad"), reduction)

@@ -10,6 +10,13 @@ from torch.nn import functional as F  # noqa: N812
 from torchvision.models import resnet18
 
 IMAGE_BACKBONES = ("resnet18", "conv")
+IMAGE_FITS = ("crop", "pad")
+
+
+def auto_backbone(device: str) -> str:
+    """What ``image_backbone: auto`` becomes on ``device``: QueST's ResNet-18 stem on an accelerator, the conv net
+    on a CPU, where a training step with the stem at 128² costs 1.7× one with the conv net (docs/own-data.md)."""
+    return "conv" if torch.device(device).type == "cpu" else "resnet18"
 
 
 def _module_key(feature_key: str) -> str:
@@ -42,17 +49,38 @@ def random_shift(images: Tensor, pad: int) -> Tensor:
     return torch.stack([padded[i, :, y : y + h, x : x + w] for i, (y, x) in enumerate(zip(dy, dx, strict=True))])
 
 
-def resize_images(images: Tensor, size: int) -> Tensor:
-    """Images (N, C, H, W) resized to ``size``² (bilinear, antialiased: a 480² frame averages into each pixel of a
-    64² one rather than skipping most of it); unchanged when already that size."""
-    if images.shape[-2:] == (size, size):
+def fit_geometry(height: int, width: int, size: int, fit: str) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Where a ``height``×``width`` frame goes when fitted to ``size`` (:func:`fit_images`): the (h, w) it is
+    scaled to, then the (h, w) the encoder reads."""
+    scale = min(1.0, size / (min(height, width) if fit == "crop" else max(height, width)))
+    scaled = (max(1, round(height * scale)), max(1, round(width * scale)))
+    if fit == "crop":
+        return scaled, (min(size, scaled[0]), min(size, scaled[1]))
+    return scaled, (size, size) if scale < 1 else scaled
+
+
+def fit_images(images: Tensor, size: int, fit: str = "crop") -> Tensor:
+    """Images (N, C, H, W) fitted to ``size`` keeping their aspect, never enlarged. ``crop``: scaled (bilinear,
+    antialiased: a 480² frame averages into each pixel of a 128² one rather than skipping most of it) until the
+    shorter side is at most ``size``, then the centre ``size``² (or less, for a side already shorter) kept. ``pad``:
+    scaled until the longer side is ``size``, then centred on a zero border (the dataset's mean colour once
+    normalised) up to ``size``². A frame that already fits is returned as it is."""
+    height, width = images.shape[-2:]
+    (h, w), (out_h, out_w) = fit_geometry(height, width, size, fit)
+    if (h, w) == (out_h, out_w) == (height, width):
         return images
-    return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+    if (h, w) != (height, width):
+        images = F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+    if fit == "pad":
+        top, left = (out_h - h) // 2, (out_w - w) // 2
+        return F.pad(images, (left, out_w - w - left, top, out_h - h - top))
+    top, left = (h - out_h) // 2, (w - out_w) // 2
+    return images[..., top : top + out_h, left : left + out_w]
 
 
 class ImageEncoder(nn.Module):
-    """A conv backbone (``resnet18`` or ``conv``) → spatial-softmax keypoints → Linear; images resized to
-    ``resize``² first when set; random shifts of ``shift`` pixels while training."""
+    """A conv backbone (``resnet18`` or ``conv``) → spatial-softmax keypoints → Linear; images fitted to
+    ``resize`` by ``fit`` first when set (:func:`fit_images`); random shifts of ``shift`` pixels while training."""
 
     def __init__(
         self,
@@ -62,23 +90,25 @@ class ImageEncoder(nn.Module):
         backbone: str = "resnet18",
         shift: int = 0,
         resize: int | None = None,
+        fit: str = "crop",
     ) -> None:
         super().__init__()
         if backbone not in IMAGE_BACKBONES:
             raise ValueError(f"image_backbone must be one of {', '.join(IMAGE_BACKBONES)}, got {backbone!r}")
         self.backbone = resnet18_stem() if backbone == "resnet18" else small_conv()
         self.shift = shift
-        self.resize = resize
+        self.resize, self.fit = resize, fit
+        channels, height, width = image_shape
         if resize is not None:
-            image_shape = (image_shape[0], resize, resize)
+            height, width = fit_geometry(height, width, resize, fit)[1]
         with torch.no_grad():
-            feature_shape = self.backbone(torch.zeros(1, *image_shape)).shape[1:]
+            feature_shape = self.backbone(torch.zeros(1, channels, height, width)).shape[1:]
         self.keypoints = SpatialSoftmax(tuple(feature_shape), num_kp=keypoints)
         self.proj = nn.Linear(2 * keypoints, embed_dim)
 
     def forward(self, image: Tensor) -> Tensor:
         if self.resize is not None:
-            image = resize_images(image, self.resize)
+            image = fit_images(image, self.resize, self.fit)
         if self.training and self.shift > 0:
             image = random_shift(image, self.shift)
         return self.proj(self.keypoints(self.backbone(image)).flatten(1))
@@ -98,6 +128,7 @@ class ContextEncoder(nn.Module):
         image_backbone: str = "resnet18",
         image_shift: int = 0,
         image_resize: int | None = None,
+        image_fit: str = "crop",
     ) -> None:
         super().__init__()
         self.image_keys = [k for k, ft in input_features.items() if ft.type is FeatureType.VISUAL]
@@ -111,6 +142,7 @@ class ContextEncoder(nn.Module):
                     image_backbone,
                     image_shift,
                     image_resize,
+                    image_fit,
                 )
                 for k in self.image_keys
             }
@@ -122,8 +154,12 @@ class ContextEncoder(nn.Module):
         self.obs_proj = nn.Linear(fused, dim)
         self.task_embedding = nn.Embedding(max(1, n_tasks), dim)
 
+    def encode_images(self, batch: dict[str, Tensor]) -> list[Tensor]:
+        """Each camera's embedding (B, image_embed_dim), in ``image_keys`` order."""
+        return [self.images[_module_key(k)](batch[k]) for k in self.image_keys]
+
     def forward(self, batch: dict[str, Tensor], task_ids: Tensor) -> Tensor:
-        parts = [self.images[_module_key(k)](batch[k]) for k in self.image_keys]
+        parts = self.encode_images(batch)
         parts += [self.lowdim[_module_key(k)](batch[k].float()) for k in self.lowdim_keys]
         obs = self.obs_proj(torch.cat(parts, dim=-1))
         return torch.stack([self.task_embedding(task_ids), obs], dim=1)
