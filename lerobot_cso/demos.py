@@ -115,7 +115,10 @@ class DemosConfig:
         return expert
 
     def resolved(self) -> "DemosConfig":
-        """These settings with the unset ones (null) taken from the world's expert."""
+        """These settings with the unset ones (null) taken from the world's expert (unchanged with a given dataset,
+        which uses none of them)."""
+        if self.dataset_root is not None:
+            return self
         expert, tasks = self.expert(), self.validate()
         return dataclasses.replace(
             self,
