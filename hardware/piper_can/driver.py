@@ -494,6 +494,9 @@ class PiperDriver:
             return s.status is not None and s.status.timestamp > sent_at and _mode_problem(s) is None
 
         while True:
+            # Another host's reset that reached the bus before this 0x151 is read first, so the guard sees it;
+            # one that lands after this is the residual (the firmware acts on our 0x151 in its countdown).
+            self.link.caught_up(self.config.feedback_timeout_s)
             self._send(self._mode_frame(), guard=guard)
             if self._wait(guard, confirmed, max(min(MODE_RESEND_S, end - self.clock.monotonic()), 0.0)):
                 break

@@ -245,6 +245,7 @@ class PiperLink:
         self._stale: FeedbackStaleError | None = None
         self._bus_error: CanBusError | None = None
         self.stale_at: float | None = None
+        self._drains = 0  # how often the reader found its queue empty: see ``caught_up``
 
     @property
     def where(self) -> str:
@@ -392,6 +393,21 @@ class PiperLink:
         if self._stale is not None:
             raise self._stale
 
+    def caught_up(self, timeout_s: float) -> bool:
+        """Wait until every frame received before this call has been handled (the reader found its queue empty
+        after the call began), at most ``timeout_s``; on a simulated clock, read them now. A reader waiting
+        for the GIL (a busy caller holds it for up to the 5 ms switch interval) is given it here."""
+        if not self.clock.real_time:
+            self.poll()
+            return True
+        start = self._drains
+        deadline = self.clock.monotonic() + timeout_s
+        while self._drains == start:
+            if self.clock.monotonic() >= deadline or not self._reading():
+                return False
+            self.clock.sleep(_POLL_S / 8)
+        return True
+
     def wait_for(self, predicate: Callable[[ArmState], bool], timeout_s: float) -> bool:
         """Poll the state until ``predicate`` holds; False on timeout."""
         return self._wait(lambda: predicate(self.state()), timeout_s)
@@ -448,6 +464,7 @@ class PiperLink:
                     log.error("%s", self._stale)
                 return
             # The queue was empty at ``now``: nothing that arrived before ``now`` is still unread.
+            self._drains += 1
             self._check_age(now)
             self.cache.roll_rates(now)
 

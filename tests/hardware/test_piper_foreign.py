@@ -9,6 +9,7 @@ races with real threads on the wall clock.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import pytest
@@ -129,6 +130,33 @@ def test_a_reset_our_reader_has_not_read_before_our_mode_frame_is_the_named_resi
         rig.driver.link.send = send
         settled_and_enabled(rig, landed[0])
         assert [h.frame_id for h in seen if h.moves] == [0x151]  # the one frame our reader could not stop
+
+
+def test_before_each_mode_frame_the_reader_catches_up_with_what_was_queued():
+    # Real threads: another host's reset is on the bus as enable() starts its mode selection, and the reader
+    # takes 50 ms over it (a busy thread holding the GIL delays a real reader the same way). The 0x151 waits
+    # until the reader has handled it, so the guard sees the reset and the enable starts over.
+    with make_rig(EmulatorConfig(profile="light"), real_time=True, enable=False) as rig:
+        seen = witness(rig)
+        link, driver = rig.driver.link, rig.driver
+        handle, select_mode, landed = link._handle, driver._select_mode, []
+
+        def slow(msg):
+            if msg.arbitration_id == 0x150 and msg.data[0] == 0x02:
+                time.sleep(0.05)
+            handle(msg)
+
+        def reset_first(deadline, guard):
+            if not landed:
+                landed.append(rig.now())
+                send_foreign(rig, 0x150, bytes([0x02]))
+            return select_mode(deadline, guard)
+
+        link._handle = slow
+        driver._select_mode = reset_first
+        driver.enable()
+        assert landed and not rig.arm.motor_off_pending and rig.arm.enabled == (True,) * 6
+        assert [h.frame_id for h in seen if h.moves] == []
 
 
 @pytest.mark.parametrize(
