@@ -331,7 +331,10 @@ class PiperDriver:
                 raise EnableTimeoutError(self._enable_failure(started, requests))
             backoff = min(backoff * 2, ENABLE_BACKOFF_CAP_S)
         mode_sent_at = self._select_mode(deadline, guard)
-        guard()  # a reset acted on before our confirmed 0x151 has been read by now
+        # A reset acted on before our confirmed 0x151 was read before the status that confirmed it; one that
+        # came after is read now, unless it lands between this and the latch opening (the reader's latency).
+        self.link.caught_up(self.config.feedback_timeout_s)
+        guard()
         self._mode_mark = mode_sent_at
 
     def _enable_guard(self, token: int) -> Callable[[], None]:
