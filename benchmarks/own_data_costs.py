@@ -8,6 +8,8 @@
   video and as PNG images, with 0 and 2 workers: what decoding costs per batch; and the CPU seconds of one item
   with and without the action chunk (LeRobot's query of the chunk decodes the PNG frames of its rows too), also
   after ``lerobot-edit-dataset --operation.type=convert_image_to_video`` turned the PNG dataset into video.
+- ``codecs``: the video dataset's items against its re-encoding to H.264 by ``lerobot-edit-dataset
+  --operation.type=reencode_videos``, alternating.
 - ``train``: the real ``lerobot-train --policy.type=cso`` with only ``--steps``, ``--batch_size`` and the device
   (plus ``--policy.n_autoencoder_steps=0`` to time the prior phase); seconds per step = the difference of a short
   and a longer run's wall time over the difference of their steps (start-up cancels).
@@ -188,13 +190,22 @@ def measure_items(root: Path, items: int) -> dict[str, float]:
     return out
 
 
-def convert_to_video(root: Path, out: Path) -> Path:
-    """The PNG dataset converted to video by LeRobot's own editor (``convert_image_to_video``)."""
+def edit_dataset(root: Path, out: Path, *operation: str) -> Path:
+    """``root`` edited by LeRobot's own ``lerobot-edit-dataset`` into ``out`` (kept: a rerun reuses it)."""
     if not out.exists():
         cmd = [str(Path(sys.executable).parent / "lerobot-edit-dataset"), f"--repo_id={REPO_ID}", f"--root={root}"]
-        cmd += ["--operation.type=convert_image_to_video", f"--new_root={out}", f"--new_repo_id={REPO_ID}"]
-        subprocess.run(cmd, check=True, capture_output=True)
+        subprocess.run([*cmd, *operation, f"--new_root={out}", f"--new_repo_id={REPO_ID}"], check=True)
     return out
+
+
+def measure_codecs(video: Path, work: Path, rounds: int) -> dict[str, Any]:
+    """CPU seconds per item of the AV1 video dataset and of its re-encoding to H.264, alternating."""
+    h264 = edit_dataset(video, work / "h264", "--operation.type=reencode_videos", "--operation.rgb_encoder.vcodec=h264")
+    items: dict[str, list[float]] = {"av1 (LeRobot's default)": [], "h264": []}
+    for _ in range(rounds):
+        for name, root in zip(items, (video, h264), strict=True):
+            items[name].append(measure_items(root, 8)["frame + 32-action chunk"])
+    return {"cpu_seconds_per_item": items, "loadavg_after": load()}
 
 
 def lerobot_train(root: Path, out: Path, steps: int, extra: list[str]) -> float:
@@ -211,9 +222,9 @@ def lerobot_train(root: Path, out: Path, steps: int, extra: list[str]) -> float:
     return seconds
 
 
-def measure_train(roots: dict[str, Path], work: Path, short: int, long: int) -> dict[str, Any]:
+def measure_train(roots: dict[str, Path], work: Path, short: int, long: int, kinds: list[str]) -> dict[str, Any]:
     results = {}
-    runs = [(kind, "prior phase", ["--policy.n_autoencoder_steps=0"]) for kind in roots] + [("video", "defaults", [])]
+    runs = [(kind, "prior phase", ["--policy.n_autoencoder_steps=0"]) for kind in kinds] + [("video", "defaults", [])]
     for kind, phase, extra in runs:
         times = [lerobot_train(roots[kind], work / f"train_{kind}_{n}", n, extra) for n in (short, long)]
         for n in (short, long):
@@ -269,10 +280,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--results", type=Path, required=True)
-    parser.add_argument("--parts", default="crop,encoders,data,train")
+    parser.add_argument("--parts", default="crop,encoders,data,codecs,train")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the encoder candidates")
     parser.add_argument("--steps", type=int, default=1)
+    parser.add_argument("--train_steps", default="4,12", help="the short and the long run's steps")
+    parser.add_argument("--train_kinds", default="video,image", help="the datasets whose prior phase is timed")
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--length", type=int, default=100)
     args = parser.parse_args()
@@ -292,7 +305,7 @@ def main() -> int:
         results["encoders"] = measure_encoders(args.rounds, args.steps)
         save()
     roots = {kind: args.work / f"data_{kind}" for kind in ("video", "image")}
-    if "data" in parts or "train" in parts:
+    if {"data", "codecs", "train"} & set(parts):
         for kind, root in roots.items():
             if not root.exists():
                 write_dataset(root, kind, args.episodes, args.length)
@@ -303,13 +316,20 @@ def main() -> int:
                 f"{kind}, {w} workers": measure_loader(root, w, 8) for kind, root in roots.items() for w in (0, 2)
             },
             "cpu_seconds_per_item": {kind: measure_items(root, 6) for kind, root in roots.items()},
-            "image converted to video": measure_items(convert_to_video(roots["image"], args.work / "converted"), 6),
+            "image converted to video": measure_items(
+                edit_dataset(roots["image"], args.work / "converted", "--operation.type=convert_image_to_video"), 6
+            ),
             "loadavg_after": load(),
         }
         print(results["data"], flush=True)
         save()
+    if "codecs" in parts:
+        results["codecs"] = measure_codecs(roots["video"], args.work, 2)
+        print(results["codecs"], flush=True)
+        save()
     if "train" in parts:
-        results["train"] = measure_train(roots, args.work, 4, 12)
+        short, long = (int(n) for n in args.train_steps.split(","))
+        results["train"] = measure_train(roots, args.work, short, long, args.train_kinds.split(","))
         save()
     return 0
 
