@@ -223,6 +223,15 @@ def arm(clock: SteppingWallClock | None = None) -> Iterator[Arm]:
         bus.shutdown()
 
 
+def foreign_reset(rig: Arm) -> None:
+    """Another host's reset (0x150 02), on the bus at once for every listener. python-can's ``virtual`` bus
+    puts a frame in each listener's queue in turn, so a thread switch between two puts could let the firmware
+    act on it, and answer, before our reader's queue has it; a real bus delivers a frame to every node at
+    once (holding the emulator off while it is put everywhere models that)."""
+    with rig.emulator.locked():
+        rig.other.send(can.Message(arbitration_id=0x150, data=bytes([0x02]).ljust(8, b"\0"), is_extended_id=False))
+
+
 class Commander:
     """A thread that commands a pose every ~5 ms until stopped, ignoring refusals."""
 
@@ -316,7 +325,7 @@ def race_estop(rig: Arm, rng: random.Random) -> Counts:
 def race_foreign(rig: Arm, rng: random.Random) -> Counts:
     commander = Commander(rig.driver)
     time.sleep(rng.uniform(0.01, 0.05))
-    rig.other.send(can.Message(arbitration_id=0x150, data=bytes([0x02]).ljust(8, b"\0"), is_extended_id=False))
+    foreign_reset(rig)
     time.sleep(0.15)
     commander.stop()
     seen = rig.witness.take()
@@ -349,7 +358,7 @@ def foreign_reset_during(rig: Arm, rng: random.Random, operation: Callable[[], N
     def reset_later() -> None:
         began.wait()
         time.sleep(rng.uniform(0.0, window_s))
-        rig.other.send(can.Message(arbitration_id=0x150, data=bytes([0x02]).ljust(8, b"\0"), is_extended_id=False))
+        foreign_reset(rig)
 
     other_host = threading.Thread(target=reset_later)
     other_host.start()
