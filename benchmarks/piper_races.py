@@ -518,7 +518,9 @@ def main(argv: list[str] | None = None) -> int:
             "wall_step_s": args.wall_step_s,
         }
         with open(args.out, "w") as out:
-            json.dump({"meta": meta, "races": results, "total_violations": total}, out, indent=1)
+            command = " ".join(["benchmarks/piper_races.py", *(argv if argv is not None else sys.argv[1:])])
+            stamp = {"command": command, "date": time.strftime("%Y-%m-%d", time.gmtime())}
+            json.dump(stamp | {"meta": meta, "races": results, "total_violations": total}, out, indent=1)
             out.write("\n")
     return 1 if total else 0
 
