@@ -317,6 +317,8 @@ class PiperDriver:
         requests = 0
         request = encode(MotorEnable(MOTOR_ALL_JOINTS, True))
         guard = self._enable_guard(token)
+        before = self.link.state()
+        was_off = [j for j, on in enumerate(before.joints_enabled, start=1) if not on]
         while True:
             try:
                 self._send(request, self._gripper_hold(GripperStatusCode.ENABLE), guard=guard)
@@ -328,7 +330,7 @@ class PiperDriver:
             if enabled and requests >= 2:
                 break
             if self.clock.monotonic() >= deadline:
-                raise EnableTimeoutError(self._enable_failure(started, requests))
+                raise EnableTimeoutError(self._enable_failure(started, requests, was_off, before.gripper_enabled))
             backoff = min(backoff * 2, ENABLE_BACKOFF_CAP_S)
         mode_sent_at = self._select_mode(deadline, guard)
         # A reset acted on before our confirmed 0x151 was read before the status that confirmed it; one that
@@ -356,17 +358,26 @@ class PiperDriver:
 
         return guard
 
-    def _enable_failure(self, started: float, requests: int) -> str:
-        """Why the enable handshake timed out, with the remedy."""
+    def _enable_failure(self, started: float, requests: int, was_off: list[int], gripper_was_on: bool) -> str:
+        """Switch the parts this handshake enabled back off (they were off before it: nothing they hold
+        was held before), then say why it timed out, with the remedy."""
         state = self.link.state()
         missing = _disabled_parts(state, started)
         message = (
             f"PiPER on {self.link.where} did not report enabled within {self.config.enable_timeout_s:.1f} s after "
             f"{requests} enable requests (still disabled: {', '.join(missing)}); "
         )
-        powered = [f"joint_{j}" for j, on in enumerate(state.joints_enabled, start=1) if on]
-        if powered:
-            message += f"{', '.join(powered)} stay enabled and holding (disable() switches them off: the arm falls); "
+        back_off = [j for j in was_off if state.joints_enabled[j - 1]]
+        frames = [encode(MotorEnable(j, False)) for j in back_off]
+        if not gripper_was_on and state.gripper_enabled:
+            frames.append(self._gripper_hold(GripperStatusCode.DISABLE))
+        if frames:
+            self.link.send(*frames)
+            parts = [f"joint_{j}" for j in back_off] + (["gripper"] if len(frames) > len(back_off) else [])
+            message += f"switched {', '.join(parts)} off again, as they were before; "
+        held = [f"joint_{j}" for j, on in enumerate(state.joints_enabled, start=1) if on and j not in back_off]
+        if held:
+            message += f"{', '.join(held)} stay enabled and holding, as they were (disable() drops the arm); "
         angles = state.joint_positions_rad or ()
         at_limit = [
             f"joint_{j} at {angle:.4f} rad, limits [{lower:.4f}, {upper:.4f}]"

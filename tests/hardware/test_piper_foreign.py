@@ -301,13 +301,18 @@ def test_another_hosts_reset_with_our_bytes_right_after_ours_is_not_taken_for_an
         settled_and_enabled(rig, landed)
 
 
-def test_a_failed_enable_says_so_and_names_the_joints_it_left_enabled():
+def test_a_failed_enable_says_so_and_switches_what_it_enabled_back_off():
+    # Joint 2 sits past its limit, so the firmware enables every part but it: those were off before (the arm
+    # resting), and are switched off again rather than left powered.
     past = EmulatorConfig(initial_pose_rad=(0.0, -0.02, 0.0, 0.0, 0.0, 0.0))
     with make_rig(past, enable=False, enable_timeout_s=0.3) as rig:
         with pytest.raises(EnableTimeoutError) as err:
             rig.driver.enable()
-        assert "joint_1, joint_3, joint_4, joint_5, joint_6 stay enabled and holding" in str(err.value)
-        assert rig.arm.enabled == (True, False, True, True, True, True)
+        message = str(err.value)
+        assert "switched joint_1, joint_3, joint_4, joint_5, joint_6, gripper off again, as they were before" in message
+        assert "stay enabled" not in message
+        rig.sleep(0.05)  # the firmware's enable latency
+        assert rig.arm.enabled == (False,) * 6 and not rig.arm.gripper_enabled
         with pytest.raises(ArmNotReadyError, match=r"the last enable\(\) failed \(EnableTimeoutError\)"):
             rig.driver.command(POSE)
 
