@@ -138,12 +138,11 @@ class PiperDriver:
         self._disconnecting = False  # only the disconnect policy's own rest walk may command meanwhile
         self._reset_sent_at: float | None = None
         self._may_be_high_follow = False
-        # All on the monotonic clock the link stamps frames on. When the running (or last) enable() began.
-        self._session_start = 0.0
-        # Another host's resets stamped up to this were waited out; a newer one restarts an enable in
-        # flight, or latches motion after it.
+        # All on the monotonic clock the link stamps frames on. Another host's resets stamped up to this were
+        # waited out; a newer one restarts an enable in flight, or latches motion after it.
         self._resets_waited = 0.0
-        # Another host's high-follow requests (0x151 … AD) after this need the exit (set by enable and reset).
+        # Another host's high-follow requests (0x151 … AD) after this need the exit (set when an enable begins,
+        # and by our reset).
         self._high_follow_since = 0.0
         # Another host's mode changes (0x151) after our confirmed 0x151 latch motion unless they are ours.
         self._mode_mark = 0.0
@@ -172,7 +171,7 @@ class PiperDriver:
         self.limits = self.config.limits
         self._interlock.close(NOT_ENABLED)
         now = self.clock.monotonic()
-        self._session_start = self._resets_waited = self._high_follow_since = self._mode_mark = now
+        self._resets_waited = self._high_follow_since = self._mode_mark = now
         if listen_only:
             return
         try:
@@ -283,7 +282,7 @@ class PiperDriver:
         began = self.clock.monotonic()
         if self._foreign.high_follow_since(min(self._mode_mark, self._high_follow_since)):
             self._may_be_high_follow = True
-        self._session_start = self._high_follow_since = began
+        self._high_follow_since = began
         try:
             self._recover_faults(token)
             restarts = 0
