@@ -41,7 +41,8 @@ VIEW_DIM = 20
 
 ACTION_DIM = 7
 EXPERT_SUITES = ("libero_object",)  # the suites whose tasks it does (its success measured on each: docs/libero.md)
-CARRY_Z = 0.25  # the height at which a held object is carried
+CARRY_Z = 0.25  # the height at which a held object is carried, at least
+CLEARANCE = 0.04  # a carried object's bottom stays this far above the container's rim
 POSITION_GAIN = 25.0  # action per metre of position error (saturates at 4 cm)
 ROTATION_GAIN = 3.0  # action per radian of orientation error
 CLOSE_STEPS = 14  # the fingers close fully in ≈ 12 steps
@@ -171,21 +172,22 @@ class PickPlaceExpert:
             if ep.steps >= CLOSE_STEPS:
                 ep.goto("lift" if view[OPENING] > MIN_HOLD_OPENING else "retry")
             return self._steer(view, np.array([eef[0], eef[1], ep.grasp_z]), None, 1.0)
+        hang = eef[2] - view[TARGET_LO]  # how far the object reaches below the hand
+        carry_z = max(CARRY_Z, view[CONTAINER_HI] + hang + CLEARANCE)  # a tall object clears the rim
         if ep.phase == "lift":
             if eef[2] > ep.grasp_z + 0.06 and view[TARGET_LO] < ep.lifted_from + LIFT_CHECK:
                 ep.goto("retry")  # the object stayed behind
-            elif eef[2] > CARRY_Z - 0.02:
+            elif eef[2] > carry_z - 0.02:
                 ep.goto("carry")
-            return self._steer(view, np.array([eef[0], eef[1], CARRY_Z]), None, 1.0)
+            return self._steer(view, np.array([eef[0], eef[1], carry_z]), None, 1.0)
         container = view[CONTAINER]
         if ep.phase == "carry":
             if view[OPENING] < MIN_HOLD_OPENING:
                 ep.goto("retry")  # dropped on the way
             elif np.linalg.norm(container[:2] - eef[:2]) < 0.015:
                 ep.goto("lower")
-            return self._steer(view, np.array([container[0], container[1], CARRY_Z]), None, 1.0)
+            return self._steer(view, np.array([container[0], container[1], carry_z]), None, 1.0)
         if ep.phase == "lower":
-            hang = eef[2] - view[TARGET_LO]  # how far the object reaches below the hand
             release_z = view[CONTAINER_HI] + hang + 0.01
             if eef[2] < release_z + 0.01 or ep.steps > 40:
                 ep.goto("open")
