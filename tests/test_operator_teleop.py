@@ -585,3 +585,15 @@ def test_with_on_fault_wait_a_silent_leader_is_reconnected_and_the_attempt_repea
     assert "teleoperator fault in state 0, attempt 1: TeleopFault: PiperLeader: FeedbackStaleError" in out
     assert "reconnected; state 0, attempt 1 again" in out
     assert person.polls == {"0/1/0": FPS + 4, "0/1/1": 3}  # the first try: as in the test above
+
+
+def test_a_malformed_operator_script_is_one_line_before_any_work(tmp_path):
+    """A script that is not JSON, or not the operator's layout, is one ``UsageError`` from the settings' check,
+    before a robot is touched (it was a traceback once the run reached the operator)."""
+    for text in ("{not json", '{"keys": {"0/0/0": 5}}', '{"targets": ["joint_1.pos"]}', '{"tolerance": "wide"}'):
+        script = tmp_path / "script.json"
+        script.write_text(text)
+        with pytest.raises(UsageError, match=f"^{script} is not an operator script"):
+            OperatorConfig(type="scripted", script=script).validate()
+    script.write_text(json.dumps({"keys": {"0/0/0": [5, "success"]}, "targets": {"default": {"joint_1.pos": 0.1}}}))
+    OperatorConfig(type="scripted", script=script).validate()  # a well-formed one passes

@@ -82,6 +82,8 @@ class OperatorConfig:
             raise UsageError(f"operator.type must be one of {', '.join(OPERATORS)}, got '{self.type}'")
         if self.type == "scripted" and (self.script is None or not Path(self.script).is_file()):
             raise UsageError(f"--operator.type=scripted needs --operator.script=<a JSON file>, got {self.script}")
+        if self.type == "scripted":
+            ScriptedOperator(Path(self.script))  # a malformed script is one line before any work
         check_number("operator.state_port", self.state_port, gt=0, lt=65535)
         check_number("operator.scene_seed", self.scene_seed, ge=0)
         check_number("operator.episode_time_s", self.episode_time_s, gt=0)
@@ -193,11 +195,20 @@ class ScriptedOperator:
     """
 
     def __init__(self, script: Path) -> None:
-        data = json.loads(Path(script).read_text())
-        self.tolerance = float(data.get("tolerance", 0.05))
-        self.targets: dict[str, dict[str, float]] = data.get("targets", {})
-        self.keys: dict[str, tuple[int, str]] = {k: (int(t), v) for k, (t, v) in data.get("keys", {}).items()}
-        self.gates: dict[str, str] = data.get("gates", {})
+        try:
+            data = json.loads(Path(script).read_text())
+            self.tolerance = float(data.get("tolerance", 0.05))
+            self.targets: dict[str, dict[str, float]] = {
+                state: {name: float(v) for name, v in target.items()}
+                for state, target in data.get("targets", {}).items()
+            }
+            self.keys: dict[str, tuple[int, str]] = {k: (int(t), v) for k, (t, v) in data.get("keys", {}).items()}
+            self.gates: dict[str, str] = {k: str(v) for k, v in data.get("gates", {}).items()}
+        except (OSError, ValueError, TypeError, AttributeError) as e:  # unreadable, not JSON, or not this layout
+            raise UsageError(
+                f"{script} is not an operator script ({type(e).__name__}: {e}); see its layout in "
+                "lerobot_cso/worlds/robot/operator.py, ScriptedOperator"
+            ) from None
         bad = [v for _, v in self.keys.values() if v not in VERDICTS]
         if bad:
             raise UsageError(f"{script}: key verdicts must be one of {', '.join(VERDICTS)}, got {bad}")
