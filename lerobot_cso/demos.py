@@ -109,7 +109,10 @@ class DemosConfig:
     def expert(self) -> DemoExpert:
         """The world's demo expert; ``UsageError`` for a world without one."""
         settings = self.world_settings()
-        expert = settings.demo_expert()
+        try:
+            expert = settings.demo_expert()
+        except ValueError as e:  # its simulator is not installed
+            raise UsageError(str(e)) from None
         if expert is None:
             raise UsageError(f"{settings.type} has no scripted expert to generate demos: {BRING_A_DATASET}")
         return expert

@@ -16,16 +16,12 @@ to the translation actions (a quarter of it to the rotation ones), from a genera
 from __future__ import annotations
 
 import zlib
-from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import partial
 from typing import Any
 
 import numpy as np
 
-from lerobot_cso import seeds
-from lerobot_cso.rollout.backend import Job, RolloutBackend
-from lerobot_cso.rollout.pool import open_pool
+from lerobot_cso.rollout.backend import Job
 
 # The layout of the expert's view (:func:`expert_view`): slices into one float vector.
 EEF = slice(0, 3)  # grip site position
@@ -40,7 +36,6 @@ CONTAINER_HI = 19  # the container's highest z
 VIEW_DIM = 20
 
 ACTION_DIM = 7
-EXPERT_SUITES = ("libero_object",)  # the suites whose tasks it does (its success measured on each: docs/libero.md)
 CARRY_Z = 0.25  # the height at which a held object is carried, at least
 CLEARANCE = 0.04  # a carried object's bottom stays this far above the container's rim
 POSITION_GAIN = 25.0  # action per metre of position error (saturates at 4 cm)
@@ -229,48 +224,3 @@ class LiberoExpertController:
 
     def current_skill(self, slot: int) -> None:
         return None  # an expert acts step by step, not by skills
-
-
-class LiberoDemos:
-    """LIBERO's demo expert (:class:`~lerobot_cso.worlds.base.DemoExpert`) for its pick-and-place tasks: datasets
-    in the layout of LeRobot's LIBERO datasets (``observation.images.image`` agentview, ``observation.images.image2``
-    wrist, turned 180°; the 8-d ``observation.state``; the 7-d action), from placements drawn from the seeds of
-    :data:`~lerobot_cso.seeds.DEMO_PLACEMENTS` — never one of the 50 fixed evaluation states."""
-
-    prefix = "libero"
-    fps = 20
-    robot_type = "panda"
-    action_names = ["dx", "dy", "dz", "droll", "dpitch", "dyaw", "gripper"]
-    cameras = ("image", "image2")
-    states = ("full",)  # LIBERO has one: eef position, axis-angle, two gripper joints
-    noise_std = 0.05
-    image_size = 128  # LIBERO's own datasets; a policy may resize
-    demo_states = seeds.DEMO_PLACEMENTS
-
-    def check_tasks(self, tasks: list[str]) -> None:
-        other = [task for task in tasks if task.rpartition("-")[0] not in EXPERT_SUITES]
-        if other:
-            raise ValueError(
-                f"LIBERO's scripted expert does {', '.join(EXPERT_SUITES)} (pick and place), not {', '.join(other)}"
-            )
-
-    def horizon(self, tasks: list[str]) -> int:
-        from lerobot_cso.worlds.libero.env import max_steps
-
-        return max(max_steps(task) for task in tasks)
-
-    def state_dim(self, state: str) -> int:
-        return 8
-
-    def dataset_state(self, state: np.ndarray, layout: str) -> np.ndarray:
-        return state.astype(np.float32)
-
-    def pool(self, num_envs: int, cameras: Sequence[str], image_size: int, max_steps: int) -> RolloutBackend:
-        from lerobot_cso.worlds.libero.env import CSOLiberoEnv, parse_task
-
-        # The task given here is only the initial one; every job resets its slot onto its own task.
-        factory = partial(CSOLiberoEnv, "libero_object-0", tuple(cameras), image_size, max_steps, expert=True)
-        return open_pool(num_envs, cameras, env_factory=factory, check_task=parse_task)
-
-    def controller(self, num_envs: int, noise_std: float, seed: int) -> LiberoExpertController:
-        return LiberoExpertController(num_envs, noise_std, seed)

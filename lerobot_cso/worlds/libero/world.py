@@ -131,8 +131,9 @@ class LiberoConfig(WorldConfig):
         return bool(items) and all(t.startswith(SUITE_PREFIX) for t in items)
 
     def demo_expert(self) -> DemoExpert:
-        """The pick-and-place expert (expert.py)."""
-        from lerobot_cso.worlds.libero.expert import LiberoDemos
+        """The pick-and-place expert (expert.py, demos.py); ``ValueError`` when LIBERO is not installed."""
+        _env()
+        from lerobot_cso.worlds.libero.demos import LiberoDemos
 
         return LiberoDemos()
 

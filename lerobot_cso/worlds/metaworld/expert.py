@@ -9,7 +9,7 @@ demonstrations, whatever the number of envs and however often generation was int
 from __future__ import annotations
 
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -79,10 +79,11 @@ class MetaWorldDemos:
     def dataset_state(self, state: np.ndarray, layout: str) -> np.ndarray:
         return select_state(state, layout)
 
-    def pool(self, num_envs: int, cameras: Sequence[str], image_size: int, max_steps: int) -> RolloutBackend:
-        from lerobot_cso.worlds.metaworld.world import pool
+    def __init__(self, pool: Callable[..., RolloutBackend]) -> None:
+        self._pool = pool  # the world's pool of envs (world.pool): their full state is what the expert reads
 
-        return pool(num_envs, cameras, image_size, max_steps)
+    def pool(self, num_envs: int, cameras: Sequence[str], image_size: int, max_steps: int) -> RolloutBackend:
+        return self._pool(num_envs, cameras, image_size, max_steps)
 
     def controller(self, num_envs: int, noise_std: float, seed: int) -> ExpertController:
         return ExpertController(num_envs, noise_std, seed)

@@ -117,7 +117,7 @@ class MetaWorldConfig(WorldConfig):
         """metaworld.policies' experts (expert.py)."""
         from lerobot_cso.worlds.metaworld.expert import MetaWorldDemos
 
-        return MetaWorldDemos()
+        return MetaWorldDemos(pool)
 
     def build(self, tasks: str, policy: Any, output_dir: Path | None) -> MetaWorld:
         return MetaWorld()
