@@ -2,7 +2,6 @@
 
 import dataclasses
 import functools
-import importlib.util
 import json
 import os
 import re
@@ -13,6 +12,7 @@ from pathlib import Path
 import draccus
 import pytest
 import torch
+from benchmark_scripts import benchmark_module
 
 from lerobot_cso.cli import main
 from lerobot_cso.pipeline import Pipeline, PipelineConfig
@@ -245,11 +245,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def mw_proxy():
     """``benchmarks/mw_proxy.py`` as a module, its folder on ``sys.path`` as when it runs (it imports ``harness``)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.syspath_prepend(str(ROOT / "benchmarks"))
-        spec = importlib.util.spec_from_file_location("mw_proxy", ROOT / "benchmarks" / "mw_proxy.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+    with benchmark_module("mw_proxy") as module:
         yield module
 
 

@@ -4,12 +4,12 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import benchmark_module
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -17,11 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def t5():
     """``benchmarks/twin_table5.py`` as a module, its folder on ``sys.path`` as when it runs (for ``harness``)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.syspath_prepend(str(ROOT / "benchmarks"))
-        spec = importlib.util.spec_from_file_location("twin_table5", ROOT / "benchmarks" / "twin_table5.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+    with benchmark_module("twin_table5") as module:
         yield module
 
 
