@@ -18,12 +18,12 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
 from torch import Tensor
 
-from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.sampling import Sampling
+from lerobot_cso.untrained import untrained_policy
 
 WARMUP = 10
 
@@ -60,14 +60,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
-    config = CSOConfig(
-        device="cpu",
-        tasks=["reach"],
-        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (39,))},
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
-    )
-    policy = CSOPolicy(config).eval()
+    policy = untrained_policy(["reach"], state_dim=39, action_dim=4).eval()  # full size, MetaWorld shapes
     print(f"# command: python {shlex.join(sys.argv)}")
     print(f"# torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
     with open("/proc/loadavg") as f:

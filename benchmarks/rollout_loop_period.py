@@ -17,14 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.policies.factory import make_pre_post_processors
+from lerobot_robot_piper.cli_processes import explain, rollout_args, run_cli
+from piper_can.channel_recorder import ChannelRecorder
+from piper_can.emulator_process import start_emulator, unique_udp_channel
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "hardware"))
-from piper_processes import ChannelRecorder, explain, run_cli, start_emulator  # noqa: E402
-from piper_rig import unique_udp_channel  # noqa: E402
-
-from lerobot_cso.policy import CSOConfig, CSOPolicy  # noqa: E402
+from lerobot_cso.untrained import save_untrained_policy
 
 TASK = "hold still"
 BINS_MS = (0, 30, 32, 33, 34, 35, 36.7, 40, 50, 70, 100, 1000, float("inf"))
@@ -41,30 +38,15 @@ def save_untrained_piper_policy(
 ) -> Path:
     """Untrained cso policy for ``task`` on the PiPER (7-D state and action, plus ``cameras`` at ``side`` x
     ``side``), of the default size or with ``settings`` (CSOConfig fields), saved with its processors."""
-    torch.manual_seed(0)
-    images = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, side, side)) for c in cameras}
-    config = CSOConfig(
-        device="cpu",
-        push_to_hub=False,
-        n_autoencoder_steps=0,
-        tasks=[task],
-        async_decode_lead=lead,
-        inference_weights=weights,
-        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (7,)), **images},
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-        **(settings or {}),
-    )
+    images = {f"observation.images.{c}": (3, side, side) for c in cameras}
     # Actions stay within ±0.1 rad of home (gripper 0 … 2 cm): the untrained policy only jitters.
     stats = {
         "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
         "action": {"min": torch.tensor([-0.1] * 6 + [0.0]), "max": torch.tensor([0.1] * 6 + [0.02])},
     }
     stats |= {key: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)} for key in images}
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    CSOPolicy(config).save_pretrained(path)
-    pre.save_pretrained(path)
-    post.save_pretrained(path)
-    return path
+    settings = {"async_decode_lead": lead, "inference_weights": weights} | (settings or {})
+    return save_untrained_policy(path, stats, [task], 7, 7, images, **settings)
 
 
 def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int) -> np.ndarray:
@@ -72,20 +54,11 @@ def loop_periods_ms(checkpoint: Path, home: Path, duration: float, fps: int) -> 
     follower = start_emulator(*unique_udp_channel())
     recorder = ChannelRecorder(follower.group, follower.port)
     try:
+        robot = ["--robot.type=piper_follower", *follower.args("robot"), "--robot.feedback_timeout_s=1.0"]
         out = run_cli(
             "lerobot-rollout",
-            [
-                "--strategy.type=base",
-                f"--policy.path={checkpoint}",
-                "--robot.type=piper_follower",
-                *follower.args("robot"),
-                "--robot.feedback_timeout_s=1.0",  # the emulator shares the CPUs with the policy
-                f"--task={TASK}",
-                f"--duration={duration}",
-                f"--fps={fps}",
-                "--device=cpu",
-                "--return_to_initial_position=false",
-            ],
+            # the emulator shares the CPUs with the policy: feedback may come up to 1 s late
+            [*rollout_args(checkpoint, robot, TASK, duration, fps), "--return_to_initial_position=false"],
             home,
             timeout=duration + 240,
         )

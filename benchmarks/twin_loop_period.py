@@ -45,12 +45,12 @@ from typing import NamedTuple
 
 import numpy as np
 import yaml
+from lerobot_robot_piper.cli_processes import cli_env, explain, rollout_args
+from piper_can.channel_recorder import ChannelRecorder
+from piper_can.emulator_process import BIN, start_emulator, unique_udp_channel
 from rollout_loop_period import report, save_untrained_piper_policy
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "hardware"))
-from piper_processes import BIN, ChannelRecorder, cli_env, explain, start_emulator  # noqa: E402
-from piper_rig import unique_udp_channel  # noqa: E402
 
 TASK = "press the button"
 CAMERA = "{type: piper_twin, view: %s, width: %d, height: %d, group: %s, port: %d, max_age_s: 1.0}"
@@ -156,20 +156,14 @@ def loop_run(checkpoint: Path, home: Path, args: argparse.Namespace, side: int, 
     cams = ", ".join(f"{c}: {CAMERA % (c, side, side, state_group, state_port)}" for c in args.cameras)
     recorder = ChannelRecorder(group, port) if args.clock == "bus" else None
     timings = home / "timings.json"
-    rollout = [
-        "--strategy.type=base",
-        f"--policy.path={checkpoint}",
+    robot = [
         "--robot.type=piper_follower",
         *twin.args("robot"),
         "--robot.feedback_timeout_s=1.0",  # the most a late emulator is allowed (it shares the CPUs)
         "--robot.enable_timeout_s=5",
         f"--robot.cameras={{{cams}}}",
-        f"--task={TASK}",
-        f"--duration={args.duration}",
-        f"--fps={args.fps}",
-        "--device=cpu",
-        "--return_to_initial_position=false",
     ]
+    rollout = [*rollout_args(checkpoint, robot, TASK, args.duration, args.fps), "--return_to_initial_position=false"]
     command = ["nice", "-n", str(args.nice), str(BIN / "python"), "-c", ROLLOUT, *rollout]
     if args.fifo:  # real-time scheduling (as root): every thread of the rollout above every ordinary process
         command = ["chrt", "--fifo", str(args.fifo), *command]

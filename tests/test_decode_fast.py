@@ -9,26 +9,18 @@ import time
 
 import pytest
 import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
 
-from lerobot_cso.policy import CSOConfig, CSOPolicy
+from lerobot_cso.policy import CSOPolicy
 from lerobot_cso.policy.fast_prior import FastSkillSampler
 from lerobot_cso.sampling import Sampling
+from lerobot_cso.untrained import untrained_policy
 
 N_CONTEXTS = 1000
 
 
 def full_size_policy(**overrides) -> CSOPolicy:
     """Default dims (prior 6 × 384), MetaWorld shapes, random init."""
-    torch.manual_seed(0)
-    config = CSOConfig(
-        device="cpu",
-        tasks=["reach"],
-        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (39,))},
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
-        **overrides,
-    )
-    return CSOPolicy(config).eval()
+    return untrained_policy(["reach"], state_dim=39, action_dim=4, **overrides).eval()
 
 
 @pytest.fixture(scope="module")

@@ -29,22 +29,11 @@ import can
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot_robot_piper.cli_processes import cli_env, explain, rollout_args, run_cli
 from piper_can import codec
-from robot_fixtures import (
-    BIN,
-    REST,
-    TASK,
-    ChannelRecorder,
-    EmulatorProcess,
-    cli_env,
-    explain,
-    lerobot_cso,
-    run_cli,
-    save_tiny_piper_policy,
-    start_emulator,
-    unique_udp_channel,
-    write_script,
-)
+from piper_can.channel_recorder import ChannelRecorder
+from piper_can.emulator_process import BIN, EmulatorProcess, start_emulator, unique_udp_channel
+from robot_fixtures import REST, TASK, lerobot_cso, save_tiny_piper_policy, write_script
 from safetensors.torch import load_file
 
 from lerobot_cso import cli
@@ -236,19 +225,8 @@ def test_spo_resumes_mid_iteration_and_its_update_changes_only_the_prior(spo):
 def test_lerobot_rollout_drives_the_final_checkpoint_on_the_arm(spo, arm, home):
     recorder = ChannelRecorder(arm.group, arm.port)
     try:
-        out = run_cli(
-            "lerobot-rollout",
-            [
-                "--strategy.type=base",
-                f"--policy.path={spo['out'] / 'pretrained_model'}",
-                *robot_args(arm),
-                f"--task={TASK}",
-                "--duration=1",
-                "--fps=30",
-                "--device=cpu",
-            ],
-            home,
-        )
+        policy = spo["out"] / "pretrained_model"
+        out = run_cli("lerobot-rollout", rollout_args(policy, robot_args(arm), TASK, 1, 30), home)
     finally:
         recorder.stop()
     assert out.returncode == 0, explain(out)

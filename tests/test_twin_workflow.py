@@ -21,8 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot_robot_piper.cli_processes import explain, run_cli
+from piper_can.channel_recorder import ChannelRecorder
+from piper_can.emulator_process import EmulatorProcess, start_emulator, unique_udp_channel
 from piper_twin.state_channel import StateReceiver
-from robot_fixtures import ChannelRecorder, EmulatorProcess, explain, run_cli, start_emulator, unique_udp_channel
 from tiny_data import TINY_POLICY_ARGS
 from twin_fixtures import button_xy, pressing_pose
 

@@ -1,4 +1,4 @@
-"""Helpers for the PiPER tests: unique python-can channels, an emulated arm + driver rig, a bus monitor.
+"""Helpers for the PiPER tests: unique virtual channels, an emulated arm + driver rig, a bus monitor.
 
 By default the rig runs on a ``SimulatedClock``: the emulated firmware steps every 5 ms of simulated
 time, the driver reads the bus when it asks for the state, and every frame carries its simulated
@@ -9,7 +9,6 @@ and the driver's reader thread on the wall clock (for the tests about threads an
 from __future__ import annotations
 
 import gc
-import random
 import time
 import uuid
 from collections.abc import Iterator
@@ -26,13 +25,6 @@ from piper_can.settings import DriverConfig
 
 def unique_virtual_channel() -> str:
     return f"piper-test-{uuid.uuid4().hex[:12]}"
-
-
-def unique_udp_channel() -> tuple[str, int]:
-    """A random IPv4 multicast group and UDP port (Linux delivers by port, so both must be unique)."""
-    rng = random.SystemRandom()
-    group = f"239.{rng.randint(1, 254)}.{rng.randint(1, 254)}.{rng.randint(1, 254)}"
-    return group, rng.randint(20_000, 60_000)
 
 
 @dataclass

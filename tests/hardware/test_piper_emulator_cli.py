@@ -6,9 +6,9 @@ import subprocess
 
 import pytest
 from piper_can.driver import PiperDriver
+from piper_can.emulator_process import BIN, start_emulator, unique_udp_channel
 from piper_can.settings import DriverConfig
-from piper_processes import BIN, start_emulator
-from piper_rig import unique_udp_channel, wait_until
+from piper_rig import wait_until
 
 
 @pytest.mark.parametrize(

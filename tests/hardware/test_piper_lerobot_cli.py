@@ -16,9 +16,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from lerobot_robot_piper.cli_processes import explain, rollout_args, run_cli
+from piper_can.channel_recorder import ChannelRecorder, Sample
+from piper_can.emulator_process import EmulatorProcess, start_emulator, unique_udp_channel
 from piper_can.safety import SDK_SOFT_LIMITS
-from piper_processes import ChannelRecorder, EmulatorProcess, Sample, explain, run_cli, start_emulator
-from piper_rig import unique_udp_channel
 
 pytestmark = pytest.mark.slow
 
@@ -384,21 +385,8 @@ def test_rollout_runs_a_tiny_cso_policy_on_the_follower(tiny_checkpoint, arms, h
     follower, _ = arms
     follower_bus = ChannelRecorder(follower.group, follower.port)
     try:
-        out = run_cli(
-            "lerobot-rollout",
-            [
-                "--strategy.type=base",
-                f"--policy.path={tiny_checkpoint}",
-                "--robot.type=piper_follower",
-                *follower.args("robot"),
-                *ROBUST,
-                f"--task={TASK}",
-                "--duration=2",
-                "--fps=30",
-                "--device=cpu",
-            ],
-            home,
-        )
+        robot = ["--robot.type=piper_follower", *follower.args("robot"), *ROBUST]
+        out = run_cli("lerobot-rollout", rollout_args(tiny_checkpoint, robot, TASK, 2, 30), home)
     finally:
         follower_bus.stop()
     assert out.returncode == 0, explain(out)

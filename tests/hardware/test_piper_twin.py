@@ -14,12 +14,13 @@ import pyarrow.parquet as pq
 import pytest
 from lerobot.cameras import make_cameras_from_configs
 from lerobot_robot_piper import PiperFollower, PiperFollowerConfig, PiperScriptedConfig, PiperTwinCameraConfig
+from lerobot_robot_piper.cli_processes import explain, run_cli
 from lerobot_robot_piper.piper_scripted import PiperScripted
+from piper_can.emulator_process import start_emulator, unique_udp_channel
 from piper_can.errors import ArmNotReadyError, EmergencyStopError, FirmwareFaultError
 from piper_can.firmware import PlantCommand
 from piper_can.safety import SDK_SOFT_LIMITS
-from piper_processes import explain, run_cli, start_emulator
-from piper_rig import make_rig, unique_udp_channel
+from piper_rig import make_rig
 from piper_sdk.kinematics.piper_fk import C_PiperForwardKinematics
 from piper_twin.demo import ScriptedDemo
 from piper_twin.model import GRIPPER_MAX_M, arm_spec
