@@ -23,6 +23,9 @@ SPO's health per iteration (clip fraction, approximate KL, rejection rate) is ke
     python benchmarks/mw_proxy.py --seeds=0   # one seed
     python benchmarks/mw_proxy.py --methods=il,rsft,cso   # the pipelines of every seed first
 
+``--stop_after=<stage>`` ends each seed's pipeline after that stage and records the evaluations done by then (e.g.
+``--stop_after=eval_il`` for IL alone); the same command without it continues.
+
 Further arguments are pipeline settings over ``--config``, as ``lerobot-cso pipeline`` takes them; they are part
 of the config the results file is tied to:
 
@@ -159,8 +162,13 @@ def run_seed(
     pipeline = Pipeline(dataclasses.replace(cfg, output_dir=work / f"seed{seed}", seed=seed))
     cfg = pipeline.cfg
     out = pipeline.run()
-    for method in ("il", "rsft", "cso"):
-        results["methods"][method]["per_seed"][key] = out["success_rate"][method]["overall"]["mean"]
+    for method, rows in out["success_rate"].items():  # every evaluation done, even in a stopped run
+        results["methods"][method]["per_seed"][key] = rows["overall"]["mean"]
+    results.setdefault("stage_seconds", {})[key] = out["stage_seconds"]
+    if "stopped_after" in out:
+        save(path, results)
+        print(f"[mw_proxy] seed {seed}: stopped after {out['stopped_after']}; the same command without it continues")
+        return
     checkpoints = {name: Path(p) for name, p in out["checkpoints"].items()}
     history = [json.loads(line) for line in (cfg.output_dir / "spo" / "log.jsonl").read_text().splitlines()]
     record_spo(results, "cso", key, history)
@@ -257,10 +265,9 @@ def main() -> int:
         parser.error(f"no config file {args.config}")
     try:
         cfg = pipeline_config(args.config, overrides)
+        Pipeline(cfg)  # checks the settings (tasks, stop_after, threads) before any results are touched
     except UsageError as e:
         parser.error(str(e))
-    if cfg.stop_after is not None:
-        parser.error("--stop_after: the MW-proxy runs every stage of each seed's pipeline")
     results = load(args.results, command, config_spec(cfg))
     started = time.perf_counter()
     finished = sum(len(e["per_seed"]) for e in results["methods"].values())

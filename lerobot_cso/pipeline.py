@@ -136,6 +136,7 @@ class Pipeline:
         if cfg.stop_after not in (None, *STAGES[:-1]):  # after the last stage is the whole run: null
             raise UsageError(f"stop_after must be one of {', '.join(STAGES[:-1])} or null, got {cfg.stop_after!r}")
         self.seconds: dict[str, float] = {}
+        self.rates: dict[str, dict[str, Any]] = {}  # evaluation name → its success rates, as they finish
         self.validate()
 
     def world_settings(self) -> WorldConfig:
@@ -219,17 +220,23 @@ class Pipeline:
 
     def evaluate(self, label: str, policy: Path, upstream: str) -> dict[str, Any]:
         stage = EvalStage(label, self.eval_config(label, policy_config(policy)))
-        self.execute(stage, after=upstream)
-        return stage.success_rate()
+        try:
+            self.execute(stage, after=upstream)
+        except StoppedAfter:  # complete: a stopped run reports it too
+            self.rates[label] = stage.success_rate()
+            raise
+        self.rates[label] = stage.success_rate()
+        return self.rates[label]
 
     def run(self) -> dict[str, Any]:
         """All stages in order; returns the results (also written to ``results.md`` / ``results.json``), or, with
-        ``stop_after``, ``{"stopped_after": stage, "stage_seconds": ...}`` once that stage is complete."""
+        ``stop_after``, ``{"stopped_after": stage, "stage_seconds": ..., "success_rate": ...}`` once that stage is
+        complete (the success rates of the evaluations done by then)."""
         try:
             return self._run()
         except StoppedAfter as stop:
             print(f"[pipeline] stopped after {stop} (stop_after); the same command without it continues", flush=True)
-            return {"stopped_after": str(stop), "stage_seconds": self.seconds}
+            return {"stopped_after": str(stop), "stage_seconds": self.seconds, "success_rate": self.rates}
 
     def _run(self) -> dict[str, Any]:
         started = time.perf_counter()
@@ -241,13 +248,14 @@ class Pipeline:
         il = ILStage(self.cfg.il, demos.output(), self.cfg.demos.repo_id, self.out / "il", self.train_threads())
         self.execute(il, after="demos")
         with kept_pools():  # the rollout stages share their env pools (workers and models built once)
-            rates = {"il": self.evaluate("il", il.policy(), "il")}
+            self.evaluate("il", il.policy(), "il")
             rsft = RSFTStage(self.rsft_config(policy_config(il.policy())))
             self.execute(rsft, after="il")
-            rates["rsft"] = self.evaluate("rsft", rsft.policy(), "rsft")
+            self.evaluate("rsft", rsft.policy(), "rsft")
             spo = SPOStage(self.spo_config(policy_config(rsft.policy())))
             self.execute(spo, after="rsft")
-            rates["cso"] = self.evaluate("cso", spo.policy(), "spo")
+            self.evaluate("cso", spo.policy(), "spo")
+        rates = self.rates
         table = results_table(self.tasks, rates)
         results = {
             "tasks": self.tasks,

@@ -72,6 +72,10 @@ def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_con
     assert [s for s in STAGES if f"[pipeline] {s}: running" in stopped.stdout] == ["demos", "il", "eval_il"]
     assert "[pipeline] stopped after eval_il (stop_after)" in stopped.stdout
     assert not (out / "rsft").exists() and not (out / "results.json").exists()
+    # run again in this process, stopped where it stopped: every stage is skipped, and IL's evaluation is reported
+    cfg = draccus.parse(PipelineConfig, args=[f"--config_path={tiny_config}", "--stop_after=eval_il"])
+    again = Pipeline(cfg).run()
+    assert again["stopped_after"] == "eval_il" and list(again["success_rate"]) == ["il"]
 
     first = pipeline(f"--config_path={tiny_config}")  # the same command without stop_after continues
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
@@ -81,6 +85,7 @@ def test_stopped_end_to_end_then_continued_then_rerun_skips_every_stage(tiny_con
     table = final_table(first.stdout)
     print(table)
     assert results["table"] == table and (out / "results.md").read_text().startswith(table)
+    assert results["success_rate"]["il"] == again["success_rate"]["il"]
     for name in ("il", "rsft", "cso"):
         rates = results["success_rate"][name]
         assert set(rates) == {*TASKS, "overall"} and all(0 <= r["mean"] <= 1 for r in rates.values())
@@ -322,8 +327,9 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
             "trajectory, ript",
         ),
         (
-            ["--stop_after=il"],
-            "mw_proxy.py: error: --stop_after: the MW-proxy runs every stage of each seed's pipeline",
+            ["--stop_after=eval_cso"],
+            "mw_proxy.py: error: stop_after must be one of demos, il, eval_il, rsft, eval_rsft, spo or null, got "
+            "'eval_cso'",
         ),
     ],
 )
@@ -338,3 +344,44 @@ def test_mw_proxy_bad_input_is_one_error_line_after_its_usage(mw_proxy, monkeypa
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_.value.code == 2 and err[0].startswith("usage: mw_proxy.py") and err[-1] == message
     assert len(err) <= 3 and not results.exists()
+
+
+def test_mw_proxy_stopped_records_the_evaluations_done_and_the_same_command_continues(mw_proxy, tmp_path, monkeypatch):
+    """With --stop_after, a seed's pipeline records what it evaluated (here IL) and its stage times, and leaves the
+    other methods to the same command without it, which then records them and its SPO-only run."""
+    rows = {"il": {"overall": {"mean": 0.25}}, "rsft": {"overall": {"mean": 0.5}}, "cso": {"overall": {"mean": 0.75}}}
+    ran: list[str | None] = []
+
+    class Stopped:  # the pipeline of one seed, stopped after IL's evaluation or run to its end
+        def __init__(self, cfg: PipelineConfig) -> None:
+            self.cfg = cfg
+
+        def run(self) -> dict:
+            ran.append(self.cfg.stop_after)
+            seconds = {"demos": 1.0, "il": 2.0, "eval_il": 3.0}
+            if self.cfg.stop_after == "eval_il":
+                return {"stopped_after": "eval_il", "stage_seconds": seconds, "success_rate": {"il": rows["il"]}}
+            spo = self.cfg.output_dir / "spo"
+            spo.mkdir(parents=True)
+            (spo / "log.jsonl").write_text(
+                json.dumps({"success_rate": 0.5, "clip_fraction": 0.1, "approx_kl": 0.0, "rejection_rate": 0.0}) + "\n"
+            )
+            return {"stage_seconds": seconds | {"spo": 4.0}, "success_rate": rows, "checkpoints": {}}
+
+    monkeypatch.setattr(mw_proxy, "Pipeline", Stopped)
+    cfg = mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", [])
+    path = tmp_path / "results.json"
+    results = mw_proxy.load(path, "test", mw_proxy.config_spec(cfg))
+    stopped = dataclasses.replace(cfg, stop_after="eval_il")
+    mw_proxy.run_seed(stopped, 0, tmp_path, results, path, ("il", "rsft", "cso"))
+    saved = json.loads(path.read_text())
+    assert {m: e["per_seed"] for m, e in saved["methods"].items() if e["per_seed"]} == {"il": {"0": 0.25}}
+    assert saved["methods"]["il"]["mean"] == 0.25 and saved["stage_seconds"]["0"]["eval_il"] == 3.0
+    mw_proxy.run_seed(cfg, 0, tmp_path, results, path, ("il", "rsft", "cso"))
+    saved = json.loads(path.read_text())
+    assert {m: saved["methods"][m]["per_seed"] for m in rows} == {
+        m: {"0": r["overall"]["mean"]} for m, r in rows.items()
+    }
+    assert saved["stage_seconds"]["0"]["spo"] == 4.0 and ran == ["eval_il", None]
+    mw_proxy.run_seed(cfg, 0, tmp_path, results, path, ("il", "rsft", "cso"))  # complete: nothing runs
+    assert ran == ["eval_il", None]
