@@ -20,6 +20,14 @@ per-frame episode metadata that LeRobot's tools carry along: ``<world>.task`` (t
 are kept in ``meta/cso_demos.json``; a run on a dir holding a dataset made with other settings, or anything else, is
 refused.
 
+**LeRobot's own format** (``--format=lerobot``, MetaWorld): what LeRobot's ``metaworld`` env gives a policy and its
+Hub datasets (``lerobot/metaworld_*``) hold, so a Hub user's data can be made offline: ``corner2`` as
+``observation.image`` (``image_size``², by default LeRobot's 480², turned as LeRobot turns it; stored as video,
+LeRobot's default), the 4-d hand ``observation.state``, the 4-d ``action``, 80 fps and LeRobot's own task
+descriptions (for ``push-back-v3`` the sentence LeRobot gives ``push-v3`` too). Nothing else is in the frames: an
+episode's task, initial-state seed and outcome are kept in ``meta/cso_episodes.json`` instead (in episode order),
+which is what a resumed or topped-up run reads. Other cameras or state layouts are refused.
+
 **An existing dataset instead** (``dataset_root``, with its ``repo_id``): for tasks without a scripted expert, or
 a user's own data, the pipeline trains on a LeRobotDataset the user brings, e.g. the Hub's ``lerobot/libero_spatial``
 (LeRobot downloads it into ``dataset_root`` when the folder lacks it and the Hub is reachable). Nothing is
@@ -48,6 +56,7 @@ from datasets.utils import logging as hf_logging
 from lerobot.configs import parser
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.utils.constants import OBS_IMAGE, OBS_IMAGES
 from tqdm import tqdm
 
 from lerobot_cso.durable import (
@@ -65,6 +74,8 @@ from lerobot_cso.worlds.metaworld.env_config import parse_cameras
 from lerobot_cso.worlds.registry import default_world
 
 SPEC_FILE = "meta/cso_demos.json"
+EPISODES_FILE = "meta/cso_episodes.json"  # --format=lerobot: [task, init_seed, success] per episode
+FORMATS = ("cso", "lerobot")
 BRING_A_DATASET = (
     "give a LeRobotDataset of its tasks with --dataset_root=<its folder> --repo_id=<its repo id> "
     "(in the pipeline: --demos.dataset_root, --demos.repo_id)"
@@ -85,15 +96,22 @@ class DemosConfig:
     noise_std: float | None = None
     seed: int = 0
     keep_failed: bool = True
-    # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU). MetaWorld:
-    # corner, corner2, ..., gripperPOV; LIBERO: image (agentview), image2 (wrist).
+    # The dataset's layout: cso (observation.images.<camera>, the state layout below, per-frame episode metadata) or
+    # lerobot (MetaWorld only: LeRobot's own MetaWorld format, as its metaworld env and the Hub's lerobot/metaworld_*
+    # datasets hold it: corner2 as observation.image at 480² unless --image_size, stored as video, the 4-d hand
+    # observation.state, 80 fps, LeRobot's task descriptions).
+    format: str = "cso"
+    # Comma list of cameras to render at image_size × image_size (empty: state only; slow on CPU; with
+    # --format=lerobot: its one camera, corner2). MetaWorld: corner, corner2, ..., gripperPOV; LIBERO: image
+    # (agentview), image2 (wrist).
     cameras: str = ""
-    # Side of the camera images; null: the world's (MetaWorld 128, LIBERO 128).
+    # Side of the camera images; null: the world's (MetaWorld 128, LIBERO 128; --format=lerobot: 480, at least 32).
     image_size: int | None = None
-    # What observation.state holds. MetaWorld: full (39-d, object and goal positions), proprio (QueST's 8-d hand +
-    # gripper, now and one frame before; with a camera the policy must find the objects in the image), hand
-    # (LeRobot's 4-d). LIBERO: full (its 8-d eef position, axis-angle and gripper joints: what LeRobot's has).
-    state: str = "full"
+    # What observation.state holds; null: full (--format=lerobot: hand). MetaWorld: full (39-d, object and goal
+    # positions), proprio (QueST's 8-d hand + gripper, now and one frame before; with a camera the policy must find
+    # the objects in the image), hand (LeRobot's 4-d). LIBERO: full (its 8-d eef position, axis-angle and gripper
+    # joints: what LeRobot's has).
+    state: str | None = None
     # Episode cap; null: the world's horizon (MetaWorld 500; LIBERO its suite's, e.g. 280 for libero_object).
     max_steps: int | None = None
     num_envs: int = 4
@@ -123,12 +141,21 @@ class DemosConfig:
         if self.dataset_root is not None:
             return self
         expert, tasks = self.expert(), self.validate()
+        lerobot = self.format == "lerobot"  # LeRobot's camera, size and state; else the expert's defaults
+        image_size = expert.lerobot_image_size if lerobot else expert.image_size
+        state = expert.lerobot_state if lerobot else expert.states[0]
         return dataclasses.replace(
             self,
             noise_std=expert.noise_std if self.noise_std is None else self.noise_std,
-            image_size=expert.image_size if self.image_size is None else self.image_size,
+            cameras=expert.lerobot_camera if lerobot else self.cameras,
+            image_size=image_size if self.image_size is None else self.image_size,
+            state=state if self.state is None else self.state,
             max_steps=expert.horizon(tasks) if self.max_steps is None else self.max_steps,
         )
+
+    def format_spec(self) -> dict[str, str]:
+        """The format's part of a spec: nothing for the default, so records made before the setting still match."""
+        return {} if self.format == "cso" else {"format": self.format}
 
     def spec(self) -> dict[str, Any]:
         """The settings that determine episode content: a dataset only ever grows under one spec."""
@@ -142,7 +169,7 @@ class DemosConfig:
             "state": cfg.state,
             "max_steps": cfg.max_steps,
             "fps": self.expert().fps,
-        }
+        } | self.format_spec()
 
     def validate(self) -> list[str]:
         """Check every setting (and the given dataset); returns the resolved task list. Raises ``UsageError``."""
@@ -150,6 +177,7 @@ class DemosConfig:
             return check_dataset(self)[0]
         check_output_dir(self.output_dir)
         expert = self.expert()
+        self._check_format(expert)
         tasks = _resolve(self.world_settings().build(self.tasks, None, None), self.tasks)
         try:
             expert.check_tasks(tasks)
@@ -167,11 +195,28 @@ class DemosConfig:
         unknown = [c for c in parse_cameras(self.cameras) if c not in expert.cameras]
         if unknown:
             raise UsageError(f"unknown camera(s) {', '.join(unknown)}; valid cameras: {', '.join(expert.cameras)}")
-        if self.state not in expert.states:
+        if self.state is not None and self.state not in expert.states:
             raise UsageError(f"state must be one of {', '.join(expert.states)}, got {self.state!r}")
-        if parse_cameras(self.cameras) and self.image_size is not None and not 16 <= self.image_size <= 512:
-            raise UsageError(f"image_size must be in [16, 512], got {self.image_size}")
+        cameras = parse_cameras(self.cameras) or self.format == "lerobot"
+        low = 32 if self.format == "lerobot" else 16  # LeRobot's video encoder (SVT-AV1) crashes on 16² frames
+        if cameras and self.image_size is not None and not low <= self.image_size <= 512:
+            raise UsageError(f"image_size must be in [{low}, 512], got {self.image_size}")
         return tasks
+
+    def _check_format(self, expert: DemoExpert) -> None:
+        """``UsageError`` for an unknown format, or the lerobot format where it cannot hold."""
+        if self.format not in FORMATS:
+            raise UsageError(f"format must be one of {', '.join(FORMATS)}, got {self.format!r}")
+        if self.format == "cso":
+            return
+        camera = getattr(expert, "lerobot_camera", None)  # only worlds with a LeRobot format of their own have one
+        if camera is None:
+            world = self.world_settings().type
+            raise UsageError(f"--format=lerobot is LeRobot's MetaWorld format; {world} has none: use --format=cso")
+        if parse_cameras(self.cameras) not in ((), (camera,)):
+            raise UsageError(f"--format=lerobot holds one camera, LeRobot's {camera}; got --cameras={self.cameras}")
+        if self.state not in (None, expert.lerobot_state):
+            raise UsageError(f"--format=lerobot holds the {expert.lerobot_state} state; got --state={self.state}")
 
 
 def _resolve(world: SimWorld, spec: str) -> list[str]:
@@ -218,19 +263,28 @@ def metadata_keys(expert: DemoExpert) -> tuple[str, str, str]:
     return f"{expert.prefix}.task", f"{expert.prefix}.init_seed", f"{expert.prefix}.success"
 
 
-def dataset_features(expert: DemoExpert, cameras: Iterable[str], image_size: int, state: str) -> dict[str, dict]:
-    """LeRobotDataset features of a demo dataset."""
-    task_key, seed_key, success_key = metadata_keys(expert)
+def image_key(camera: str, layout: str) -> str:
+    """The dataset key of a camera's frames: ``observation.images.<camera>``; LeRobot's single ``observation.image``
+    in its own format."""
+    return OBS_IMAGE if layout == "lerobot" else f"{OBS_IMAGES}.{camera}"
+
+
+def dataset_features(
+    expert: DemoExpert, cameras: Iterable[str], image_size: int, state: str, layout: str = "cso"
+) -> dict[str, dict]:
+    """LeRobotDataset features of a demo dataset in format ``layout`` (LeRobot's own: no metadata columns, video)."""
     features: dict[str, dict] = {
         "observation.state": {"dtype": "float32", "shape": (expert.state_dim(state),), "names": None},
         "action": {"dtype": "float32", "shape": (len(expert.action_names),), "names": expert.action_names},
-        task_key: {"dtype": "string", "shape": (1,), "names": None},
-        seed_key: {"dtype": "int64", "shape": (1,), "names": None},
-        success_key: {"dtype": "bool", "shape": (1,), "names": None},
     }
+    if layout == "cso":
+        task_key, seed_key, success_key = metadata_keys(expert)
+        features[task_key] = {"dtype": "string", "shape": (1,), "names": None}
+        features[seed_key] = {"dtype": "int64", "shape": (1,), "names": None}
+        features[success_key] = {"dtype": "bool", "shape": (1,), "names": None}
     for cam in cameras:
-        features[f"observation.images.{cam}"] = {
-            "dtype": "image",
+        features[image_key(cam, layout)] = {
+            "dtype": "video" if layout == "lerobot" else "image",
             "shape": (image_size, image_size, 3),
             "names": ["height", "width", "channel"],
         }
@@ -262,10 +316,12 @@ def existing_episodes(cfg: DemosConfig) -> dict[tuple[str, int], bool]:
     spec = without_added_settings(read_json(spec_path))
     wanted = without_added_settings(cfg.spec())
     if spec != wanted:
-        diff = {k: (spec.get(k), v) for k, v in wanted.items() if spec.get(k) != v}
+        diff = {k: (spec.get(k), wanted.get(k)) for k in {**spec, **wanted} if spec.get(k) != wanted.get(k)}
         raise UsageError(
             f"{out} holds a different dataset (setting: (on disk, requested) = {diff}); choose another --output_dir"
         )
+    if cfg.format == "lerobot":
+        return {(task, seed): ok for task, seed, ok in read_json(out / EPISODES_FILE)}
     ds = LeRobotDataset(cfg.repo_id, root=out, video_backend="pyav")
     keys = metadata_keys(cfg.expert())
     firsts = ds.hf_dataset.select_columns(["episode_index", *keys]).to_pandas().drop_duplicates("episode_index")
@@ -324,8 +380,9 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
         return 0
     cameras = parse_cameras(cfg.cameras)
     expert = cfg.expert()
+    lerobot = cfg.format == "lerobot"
     task_key, seed_key, success_key = metadata_keys(expert)
-    describe = cfg.world_settings().build(cfg.tasks, None, None).task_description
+    describe = expert.lerobot_task if lerobot else cfg.world_settings().build(cfg.tasks, None, None).task_description
     work = staging.root / "dataset"
     if work.exists():
         shutil.rmtree(work)  # an assembly that was interrupted: redo it
@@ -337,36 +394,38 @@ def _assemble(cfg: DemosConfig, tasks: list[str], staging: EpisodeJournal, in_da
         ds = LeRobotDataset.create(
             cfg.repo_id,
             expert.fps,
-            dataset_features(expert, cameras, cfg.image_size, cfg.state),
+            dataset_features(expert, cameras, cfg.image_size, cfg.state, cfg.format),
             root=work,
             robot_type=expert.robot_type,
-            use_videos=False,
+            use_videos=lerobot,
             video_backend="pyav",
             image_writer_threads=writer_threads,
         )
+    episodes = (read_json(work / EPISODES_FILE) or []) if lerobot else []  # in episode order
     bars_were_enabled = hf_logging.is_progress_bar_enabled()
     hf_logging.disable_progress_bar()  # one "Map" bar per saved episode otherwise
     try:
         for task, init_seed in tqdm(keys, desc="writing dataset", leave=False):
             ep = staging.load(staging.episode_path(task, f"{init_seed:07d}"))
-            meta = {
-                task_key: task,
-                seed_key: np.array([init_seed], dtype=np.int64),
-                success_key: np.array([bool(ep["success"])]),
-            }
+            success = bool(ep["success"])
+            meta = {task_key: task, seed_key: np.array([init_seed], dtype=np.int64), success_key: np.array([success])}
+            if lerobot:  # not in LeRobot's frames: kept beside them
+                episodes.append([task, init_seed, success])
             for t in range(len(ep["actions"])):
                 frame = {
                     "observation.state": expert.dataset_state(ep["states"][t], cfg.state),
                     "action": ep["actions"][t],
                     "task": describe(task),
                 }
-                frame.update({f"observation.images.{cam}": ep[f"image_{cam}"][t] for cam in cameras})
-                ds.add_frame({**frame, **meta})
+                frame.update({image_key(cam, cfg.format): ep[f"image_{cam}"][t] for cam in cameras})
+                ds.add_frame(frame if lerobot else {**frame, **meta})
             ds.save_episode()
         ds.finalize()
     finally:
         if bars_were_enabled:
             hf_logging.enable_progress_bar()
+    if lerobot:
+        write_json(work / EPISODES_FILE, episodes)
     write_json(work / SPEC_FILE, cfg.spec())
     replace_dir(work, cfg.output_dir)
     return len(keys)
@@ -412,7 +471,8 @@ class DemosStage:
     def spec(self) -> dict[str, Any]:
         # num_envs only splits the work: the dataset is the same bit for bit.
         cfg = self.cfg.resolved()
-        return {"tasks": cfg.validate(), "demos": settings_spec(cfg, exclude=(*PIPELINE_FIELDS, "num_envs"))}
+        demos = settings_spec(cfg, exclude=(*PIPELINE_FIELDS, "num_envs", "format")) | cfg.format_spec()
+        return {"tasks": cfg.validate(), "demos": demos}
 
     def output(self) -> Path:
         return self.cfg.output_dir

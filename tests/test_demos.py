@@ -212,3 +212,31 @@ def test_the_demo_expert_is_the_worlds(tmp_path):
     assert (libero.noise_std, libero.image_size, libero.max_steps) == (0.05, 128, 280)
     with pytest.raises(UsageError, match="^robot has no scripted expert to generate demos: give a LeRobotDataset"):
         DemosConfig(world=RobotWorldConfig(), tasks="press", output_dir=tmp_path / "robot").validate()
+
+
+def test_the_lerobot_format_fills_in_lerobots_settings_and_refuses_others_in_one_line(tmp_path, capsys, monkeypatch):
+    """``--format=lerobot`` takes LeRobot's camera, image size and state when they are not given, and makes a spec of
+    its own (a dataset of the other format is never reused), while a cso spec stays as before the setting; another
+    camera or state, a world without LeRobot's MetaWorld format, a size its video encoder cannot take and an
+    unknown format are each one error line."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    out = tmp_path / "ds"
+    lerobot = DemosConfig(format="lerobot", tasks="reach-v3", output_dir=out)
+    filled = lerobot.resolved()
+    assert (filled.cameras, filled.image_size, filled.state) == ("corner2", 480, "hand")
+    assert DemosConfig(tasks="reach-v3", output_dir=out).resolved().state == "full"
+    cso = DemosConfig(tasks="reach-v3", cameras="corner2", image_size=480, state="hand", output_dir=out).spec()
+    assert "format" not in cso and lerobot.spec() == cso | {"format": "lerobot"}
+    no_format = "libero has none: use --format=cso"
+    refused = [
+        ("--cameras=corner", "--format=lerobot holds one camera, LeRobot's corner2; got --cameras=corner"),
+        ("--state=full", "--format=lerobot holds the hand state; got --state=full"),
+        ("--image_size=16", "image_size must be in [32, 512], got 16"),
+        ("--tasks=libero_object-0", f"--format=lerobot is LeRobot's MetaWorld format; {no_format}"),
+    ]
+    for arg, message in refused:
+        code, err = run_cli(["demos", "--format=lerobot", "--tasks=reach-v3", f"--output_dir={out}", arg], capsys)
+        assert (code, err) == (2, f"error: {message}")
+    code, err = run_cli(["demos", "--format=hub", "--tasks=reach-v3", f"--output_dir={out}"], capsys)
+    assert (code, err) == (2, "error: format must be one of cso, lerobot, got 'hub'")
+    assert not out.exists()

@@ -1,8 +1,8 @@
-"""LeRobot's own MetaWorld format as a dataset (issue 33, item 1): a 480² ``corner2`` ``observation.image`` stored as
-video plus the 4-d hand ``observation.state``, trained with the real ``lerobot-train`` (the frames resized inside the
-policy) and rolled out in our MetaWorld world, whose env gives it LeRobot's view of the same camera; the pipeline's
-dataset check accepts it, R-SFT's buffer holds the policy's own inputs, ``eval`` films it, and the whole
-``lerobot-cso pipeline`` runs on such a dataset."""
+"""LeRobot's own MetaWorld format as a dataset (issue 33, item 1), written by ``lerobot-cso demos --format=lerobot``:
+a 480² ``corner2`` ``observation.image`` stored as video plus the 4-d hand ``observation.state``, trained with the
+real ``lerobot-train`` (the frames resized inside the policy) and rolled out in our MetaWorld world, whose env gives
+it LeRobot's view of the same camera; the pipeline's dataset check accepts it, R-SFT's buffer holds the policy's own
+inputs, ``eval`` films it, and the whole ``lerobot-cso pipeline`` runs on such a dataset."""
 
 import dataclasses
 import json
@@ -24,21 +24,20 @@ from tiny_data import TINY_POLICY_KWARGS
 from lerobot_cso import cli
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.cso import rsft
-from lerobot_cso.demos import DemosConfig, check_dataset
+from lerobot_cso.demos import DemosConfig, check_dataset, generate_demos
 from lerobot_cso.errors import UsageError
 from lerobot_cso.policy import CSOConfig, CSOPolicy
-from lerobot_cso.rollout.backend import Job
 from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.worlds.base import Rollouts, camera_inputs
-from lerobot_cso.worlds.metaworld.constants import FPS, LEROBOT_CAMERA
-from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv, select_state
-from lerobot_cso.worlds.metaworld.expert import ExpertController
+from lerobot_cso.worlds.metaworld.constants import LEROBOT_CAMERA
+from lerobot_cso.worlds.metaworld.env import CSOMetaWorldEnv
 from lerobot_cso.worlds.metaworld.tasks import task_description
 from lerobot_cso.worlds.metaworld.world import MetaWorld, env_inputs
 
 BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
 TASK = "reach-v3"
+REPO = "local/lerobot_metaworld"
 SIZE = 480  # LeRobot's MetaWorld frames
 RESIZE = 32  # what the tiny policies' encoders read
 DEFAULT_FIT = 128  # what a policy with no image setting reads
@@ -47,32 +46,55 @@ DEFAULT_FIT = 128  # what a policy with no image setting reads
 def make_lerobot_metaworld_dataset(
     root: Path, episodes: int = 2, length: int = 12, size: int = SIZE, task: str = TASK
 ) -> LeRobotDataset:
-    """Scripted-expert episodes of ``task`` written in LeRobot's MetaWorld format by LeRobot's dataset writer."""
-    features = {
-        "observation.image": {"dtype": "video", "shape": (size, size, 3), "names": ["height", "width", "channels"]},
-        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
-        "action": {"dtype": "float32", "shape": (4,), "names": None},
-    }
-    ds = LeRobotDataset.create("local/lerobot_metaworld", FPS, features, root=root, robot_type="sawyer")
-    env = CSOMetaWorldEnv(task, cameras=(LEROBOT_CAMERA,), image_size=size)  # the full state: the expert reads it
-    expert = ExpertController(1, noise_std=0.1)
-    for seed in range(episodes):
-        obs, _ = env.reset(seed=seed)
-        expert.start(0, Job(task, seed))
-        for _ in range(length):
-            action = expert.act({"agent_pos": obs["agent_pos"][None]}, np.ones(1, dtype=bool))[0]
-            frame = {
-                "observation.image": obs["pixels"][LEROBOT_CAMERA],
-                "observation.state": select_state(obs["agent_pos"], "hand"),
-                "action": action,
-                "task": task_description(task),
-            }
-            ds.add_frame(frame)
-            obs, *_ = env.step(action)
-        ds.save_episode()
+    """Scripted-expert episodes of ``task`` (at most ``length`` frames) in LeRobot's MetaWorld format, written by
+    ``lerobot-cso demos --format=lerobot``."""
+    settings = {"episodes_per_task": episodes, "max_steps": length, "image_size": size, "noise_std": 0.1}
+    generate_demos(DemosConfig(format="lerobot", tasks=task, num_envs=1, output_dir=root, repo_id=REPO, **settings))
+    return LeRobotDataset(REPO, root=root, video_backend="pyav")
+
+
+def test_demos_writes_lerobots_own_metaworld_format_and_tops_it_up_without_duplicates(tmp_path, capsys, monkeypatch):
+    """``lerobot-cso demos --format=lerobot`` writes what LeRobot's metaworld env gives a policy, by LeRobot's own
+    constants: its keys and shapes and nothing else, its fps, its task description, its view of ``corner2`` and its
+    4-d state at the episode's initial state; a second run tops it up with the missing episode only, and the
+    cso format is refused on it. (The runs that render are subprocesses: this process renders LeRobot's env.)"""
+    from lerobot.envs.configs import MetaworldEnv as LeRobotMetaworldConfig
+    from lerobot.envs.metaworld import TASK_DESCRIPTIONS, MetaworldEnv
+    from lerobot.utils.constants import DEFAULT_FEATURES
+
+    root = tmp_path / "data"
+    demos = [str(BIN / "lerobot-cso"), "demos", f"--tasks={TASK}", "--max_steps=3", f"--output_dir={root}"]
+    args = [*demos, "--format=lerobot", "--num_envs=1"]
+    proc = subprocess.run([*args, "--episodes_per_task=1"], capture_output=True, text=True, env=ENV, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    theirs = LeRobotMetaworldConfig(task=TASK)
+    wanted = {theirs.features_map[key]: tuple(ft.shape) for key, ft in theirs.features.items()}
+    ds = LeRobotDataset(REPO, root=root, video_backend="pyav")
+    features = {key: tuple(ft["shape"]) for key, ft in ds.meta.features.items() if key not in DEFAULT_FEATURES}
+    assert features == wanted == {"observation.image": (480, 480, 3), "observation.state": (4,), "action": (4,)}
+    assert ds.meta.video_keys == ["observation.image"] and ds.fps == theirs.fps
+    assert list(ds.meta.tasks.index) == [TASK_DESCRIPTIONS[TASK]] and ds.num_frames == 3
+    [[task, seed, _]] = json.loads((root / "meta" / "cso_episodes.json").read_text())
+    env = MetaworldEnv(TASK, obs_type="pixels_agent_pos")
+    obs, _ = env.reset(seed=seed)
     env.close()
-    ds.finalize()
-    return ds
+    first = ds[0]
+    np.testing.assert_allclose(first["observation.state"].numpy(), obs["agent_pos"], atol=1e-6)
+    frame = (first["observation.image"].permute(1, 2, 0).numpy() * 255).astype(int)
+    same, turned = np.abs(frame - obs["pixels"]).mean(), np.abs(frame - obs["pixels"][::-1, ::-1]).mean()
+    assert task == TASK and same < 15 and 3 * same < turned, (same, turned)
+    before = ds.hf_dataset.with_format("numpy")["action"][:]
+
+    proc = subprocess.run([*args, "--episodes_per_task=2"], capture_output=True, text=True, env=ENV, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.splitlines()[-2] == f"{root}: 2 episodes (1 new)", proc.stderr[-3000:]
+    ds = LeRobotDataset(REPO, root=root, video_backend="pyav")
+    episodes = json.loads((root / "meta" / "cso_episodes.json").read_text())
+    assert ds.num_episodes == len(episodes) == len({(t, s) for t, s, _ in episodes}) == 2 and ds.num_frames == 6
+    np.testing.assert_array_equal(ds.hf_dataset.with_format("numpy")["action"][:3], before)
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    assert cli.main(demos[1:]) == 2  # the default format, cso: refused before any env is built
+    err = capsys.readouterr().err
+    assert "holds a different dataset" in err and "'format': ('lerobot', None)" in err
 
 
 def test_config_files_written_before_a_setting_load_with_its_default_of_their_day(tmp_path):
@@ -129,7 +151,7 @@ def test_lerobot_metaworld_dataset_trains_with_only_budget_flags_and_runs_in_our
     cmd = [
         str(BIN / "lerobot-train"),
         "--policy.type=cso",
-        "--dataset.repo_id=local/lerobot_metaworld",
+        f"--dataset.repo_id={REPO}",
         f"--dataset.root={data}",
         f"--output_dir={out}",
         "--steps=4",
@@ -241,7 +263,7 @@ def test_the_pipelines_dataset_check_accepts_lerobots_metaworld_format(tmp_path)
     """``--demos.dataset_root`` on a dataset in LeRobot's format was refused: camera 'observation.image' unknown."""
     root = tmp_path / "data"
     make_lerobot_metaworld_dataset(root, episodes=1, length=2, size=32)
-    tasks, meta = check_dataset(DemosConfig(tasks=TASK, dataset_root=root, repo_id="local/lerobot_metaworld"))
+    tasks, meta = check_dataset(DemosConfig(tasks=TASK, dataset_root=root, repo_id=REPO))
     assert tasks == [TASK] and meta.camera_keys == ["observation.image"]
 
 
@@ -287,10 +309,10 @@ def test_a_policy_setting_it_refuses_is_one_error_line_and_exit_2_in_lerobot_tra
 
 # The whole pipeline on a dataset in LeRobot's MetaWorld format, 64² frames resized to 32² inside the policy. On
 # drawer-close IL learns to push the drawer shut in 100 steps (a constant push closes it), so R-SFT finds its one
-# success at once; IL closes it in 35-36 steps, so SPO's episodes stop at 35 and sample at T 3: a group is mixed.
+# success at once; IL closes it in 33 steps, so SPO's episodes stop at 33 and sample at T 3: a group is mixed.
 PIPELINE_TASK = "drawer-close-v3"
 PIPELINE_SIZE = 64
-SPO_STEPS = 35
+SPO_STEPS = 33
 TINY_PIPELINE = """
 tasks: {task}
 output_dir: {out}
@@ -322,7 +344,7 @@ def test_the_whole_pipeline_runs_on_a_dataset_in_lerobots_metaworld_format(tmp_p
     config, run = tmp_path / "pipeline.yaml", tmp_path / "run"
     config.write_text(TINY_PIPELINE.format(task=PIPELINE_TASK, out=run, resize=RESIZE, spo_steps=SPO_STEPS))
     cmd = [str(BIN / "lerobot-cso"), "pipeline", f"--config_path={config}"]
-    cmd += [f"--demos.dataset_root={data}", "--demos.repo_id=local/lerobot_metaworld"]
+    cmd += [f"--demos.dataset_root={data}", f"--demos.repo_id={REPO}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
 

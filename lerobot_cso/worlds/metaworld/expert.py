@@ -18,7 +18,16 @@ from metaworld.policies import ENV_POLICY_MAP
 from lerobot_cso import seeds
 from lerobot_cso.rollout.backend import RolloutBackend
 from lerobot_cso.rollout.pool import Job
-from lerobot_cso.worlds.metaworld.constants import CAMERAS, FPS, HORIZON, IMAGE_SIZE, STATE_LAYOUTS
+from lerobot_cso.worlds.metaworld.constants import (
+    CAMERAS,
+    FPS,
+    HORIZON,
+    IMAGE_SIZE,
+    LEROBOT_CAMERA,
+    LEROBOT_IMAGE_SIZE,
+    LEROBOT_STATE,
+    STATE_LAYOUTS,
+)
 from lerobot_cso.worlds.metaworld.env import select_state
 
 
@@ -55,7 +64,8 @@ class ExpertController:
 class MetaWorldDemos:
     """MetaWorld's demo expert (:class:`~lerobot_cso.worlds.base.DemoExpert`): the expert reads the full 39-d
     state; the dataset keeps the part its state layout names (``full``, QueST's 8-d ``proprio``, LeRobot's 4-d
-    ``hand``)."""
+    ``hand``). With ``lerobot-cso demos --format=lerobot`` it writes LeRobot's own MetaWorld format: the
+    ``lerobot_*`` camera, image size and state layout, and LeRobot's task descriptions (:meth:`lerobot_task`)."""
 
     prefix = "metaworld"
     fps = FPS
@@ -66,6 +76,9 @@ class MetaWorldDemos:
     noise_std = 0.2  # QueST's
     image_size = IMAGE_SIZE
     demo_states = seeds.DEMO
+    lerobot_camera = LEROBOT_CAMERA  # shown as observation.image, flipped as LeRobot's metaworld env flips it
+    lerobot_image_size = LEROBOT_IMAGE_SIZE
+    lerobot_state = LEROBOT_STATE
 
     def check_tasks(self, tasks: list[str]) -> None:
         """Every MetaWorld task has its expert."""
@@ -78,6 +91,13 @@ class MetaWorldDemos:
 
     def dataset_state(self, state: np.ndarray, layout: str) -> np.ndarray:
         return select_state(state, layout)
+
+    def lerobot_task(self, task: str) -> str:
+        """LeRobot's own description of ``task`` (its metaworld env's ``TASK_DESCRIPTIONS``; for ``push-back-v3`` the
+        sentence it gives ``push-v3`` too, where this project's world has its own)."""
+        from lerobot.envs.metaworld import TASK_DESCRIPTIONS
+
+        return TASK_DESCRIPTIONS[task]
 
     def __init__(self, pool: Callable[..., RolloutBackend]) -> None:
         self._pool = pool  # the world's pool of envs (world.pool): their full state is what the expert reads
