@@ -37,6 +37,7 @@ ADDED_SETTINGS: dict[str, Any] = {
     "ratio": None,
     "advantage": None,
     "world": None,
+    "format": "cso",  # the demos' dataset format (lerobot: LeRobot's own MetaWorld format)
     # Settings of every rollout stage before they moved into the robot world (--world.type=robot), at their values
     # on a simulated world: a record that holds them is the same spec as one without them.
     "robot": None,
