@@ -6,8 +6,8 @@ in a scratch directory, offline; the outcome is judged by its exit code and its 
 whose stderr holds a ``Traceback`` fails whatever its exit code. Besides bad command-line input, the scratch
 directory holds the state a try meets (issue 58): outputs without their own record, a policy of another action
 size, demonstrations of another shape, a symbolic link to an output dir, and output dirs another process writes
-(a holder process keeps their lock while the try runs). The states are made with the tests' own fixtures
-(``tests/cso_fakes.py``, ``tests/tiny_data.py``), and each stateful try is also a test in
+(a holder process keeps their lock while the try runs). The states are made here (an untrained policy from
+``lerobot_cso.untrained``, a two-frame LeRobotDataset), and each stateful try is also a test in
 ``tests/test_cli_errors.py`` (in process). Each ``lerobot-cso`` try costs a process start (~8 s idle, the cso plugin
 imports torch). Run:
     ./run.sh python benchmarks/cli_tries.py [--only SUBSTRING] [--rows 48,49] [--timeout 300]
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
-TESTS = Path(__file__).resolve().parents[1] / "tests"
+TASKS = ("reach-v3", "button-press-v3")
 
 
 @dataclass(frozen=True)
@@ -70,18 +70,14 @@ def tries(scratch: Path) -> list[Try]:
 
 def stateful_tries(scratch: Path, cso: str) -> list[Try]:
     """Issue 58's tries, and the state each meets, made under ``scratch``."""
-    sys.path.insert(0, str(TESTS))
-    from cso_fakes import TASKS, save_tiny_metaworld_policy
-    from tiny_data import make_synthetic_dataset
-
     import lerobot_policy_cso  # noqa: F401  (the cso plugin: LeRobot's torchcodec page in one line)
 
-    policy = save_tiny_metaworld_policy(scratch / "policy" / "pretrained_model")
+    policy = metaworld_policy(scratch / "policy" / "pretrained_model")
     three_d = shutil.copytree(policy, scratch / "three_d" / "pretrained_model")
     config = json.loads((three_d / "config.json").read_text())
     config["output_features"]["action"]["shape"] = [3]
     (three_d / "config.json").write_text(json.dumps(config))
-    make_synthetic_dataset(scratch / "synthetic")  # state 6, action 3: not the policy's 39 and 4
+    unfit_dataset(scratch / "synthetic")
     unrecorded = {}  # work without its own record, as the pipeline or older code leaves it
     for name in ("spo", "rsft"):
         (scratch / "pipeline" / name / "state").mkdir(parents=True)
@@ -136,6 +132,38 @@ def stateful_tries(scratch: Path, cso: str) -> list[Try]:
         Try("54", [cso, "eval", "--help"], ""),
         Try("54", [cso, "eval", "--num_env=4"], "error: unrecognized arguments: --num_env=4"),
     ]
+
+
+def metaworld_policy(path: Path) -> Path:
+    """A small untrained cso policy with MetaWorld's shapes (state 39, action 4) for :data:`TASKS`, saved."""
+    import torch
+
+    from lerobot_cso.untrained import save_untrained_policy
+    from lerobot_cso.worlds.metaworld.tasks import task_description
+
+    stats = {
+        "observation.state": {"mean": torch.zeros(39), "std": torch.ones(39)},
+        "action": {"min": -torch.ones(4), "max": torch.ones(4)},
+    }
+    small = {"ae_dim": 32, "ae_heads": 2, "prior_dim": 32, "prior_heads": 2, "prior_layers": 1, "state_embed_dim": 16}
+    return save_untrained_policy(path, stats, [task_description(t) for t in TASKS], 39, 4, **small)
+
+
+def unfit_dataset(root: Path) -> None:
+    """A LeRobotDataset of one two-frame episode with a 6-d state and a 3-d action: not the policy's 39 and 4."""
+    import numpy as np
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        key: {"dtype": "float32", "shape": (n,), "names": None} for key, n in (("observation.state", 6), ("action", 3))
+    }
+    dataset = LeRobotDataset.create("local/synthetic", fps=10, features=features, root=root, use_videos=False)
+    for _ in range(2):
+        dataset.add_frame(
+            {"observation.state": np.zeros(6, np.float32), "action": np.zeros(3, np.float32), "task": "t"}
+        )
+    dataset.save_episode()
+    dataset.finalize()
 
 
 HOLDER = (
