@@ -91,8 +91,10 @@ ESTOP_RETRY_PERIOD_S = 0.001
 # A joint that stays disabled further than this past its limit is named as why (the firmware does not
 # enable a joint past its limit); the rest pose sits exactly on J2's and J3's limits, which is fine.
 PAST_LIMIT_RAD = math.radians(0.01)
-# Joint feedback that keeps arriving with the very same angles for this long while every command asks
-# for a move of at least FROZEN_MIN_MOVE_RAD counts as frozen (a stuck sender, a replayed capture).
+# Joint feedback that keeps arriving with the very same angles and motor frames (0x25x: speed, current,
+# position) for this long while every command asks for a move of at least FROZEN_MIN_MOVE_RAD counts as
+# frozen (a stuck sender, a replayed capture). An arm held by contact keeps still too, but its motors' currents
+# vary (sensor noise, the push against the error), so its 0x25x frames do not repeat.
 FROZEN_AFTER_S = 0.25
 FROZEN_MIN_MOVE_RAD = 0.01
 # An enable() that another host's reset or high-follow request interrupts starts over at most this often.
@@ -147,9 +149,9 @@ class PiperDriver:
         # Another host's mode changes (0x151) after our confirmed 0x151 latch motion unless they are ours.
         self._mode_mark = 0.0
         self._reported_faults: tuple[Fault, ...] = ()
-        # While commanding moves: the joint angles last seen, the stamp they were first seen with, and the
-        # stamp of the last command that asked for a move.
-        self._unchanged: tuple[tuple[float, ...], float, float] | None = None
+        # While commanding moves: the feedback last seen (joint angles, 0x25x frames), the stamp it was first
+        # seen with, and the stamp of the last command that asked for a move.
+        self._unchanged: tuple[tuple[object, ...], float, float] | None = None
 
     # ------------------------------------------------------------------------------ lifecycle
     @property
@@ -668,25 +670,28 @@ class PiperDriver:
         return SentCommand(safe, safe_gripper)
 
     def _refuse_if_frozen(self, state: ArmState, targets: Sequence[float]) -> None:
-        """Raise ``FeedbackStaleError`` when joint frames keep arriving with the same angles for
-        ``FROZEN_AFTER_S`` of frame time while every command asks for a move (the watchdog only sees frames
-        stop). A pause in commanding that long starts the count again."""
+        """Raise ``FeedbackStaleError`` when joint frames keep arriving with the same angles, and the 0x25x
+        motor frames (where heard) with the same values, for ``FROZEN_AFTER_S`` of frame time while every
+        command asks for a move (the watchdog only sees frames stop). An arm held still by contact passes: its
+        motor currents change. A pause in commanding that long starts the count again."""
         present = state.joint_positions_rad
         if present is None or max(abs(t - p) for t, p in zip(targets, present, strict=True)) < FROZEN_MIN_MOVE_RAD:
             self._unchanged = None
             return
+        seen = (*present, *(None if s is None else s.value for s in state.high_speed))
         newest = min(s.timestamp for s in state.joints if s is not None)
         kept = self._unchanged
-        if kept is None or kept[0] != present or newest - kept[2] > FROZEN_AFTER_S:
-            self._unchanged = (present, newest, newest)
+        if kept is None or kept[0] != seen or newest - kept[2] > FROZEN_AFTER_S:
+            self._unchanged = (seen, newest, newest)
             return
-        self._unchanged = (present, kept[1], newest)
+        self._unchanged = (seen, kept[1], newest)
         unchanged_for = newest - kept[1]
         if unchanged_for > FROZEN_AFTER_S:
+            what = "angles and motor currents" if any(s is not None for s in state.high_speed) else "angles"
             raise FeedbackStaleError(
-                f"PiPER on {self.link.where}: joint feedback keeps arriving with the same angles for "
-                f"{unchanged_for * 1e3:.0f} ms while the arm is commanded to move: frozen feedback, or an arm that "
-                "cannot move; command refused (check the arm and the bus)"
+                f"PiPER on {self.link.where}: joint feedback keeps arriving with the same {what} for "
+                f"{unchanged_for * 1e3:.0f} ms while the arm is commanded to move: frozen feedback; command refused "
+                "(check the arm and the bus)"
             )
 
     def _send(self, *frames: Frame, guard: Callable[[], None]) -> None:

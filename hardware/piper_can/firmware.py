@@ -13,7 +13,9 @@ gripper; e-stop, and a reset that clears the status at once but switches the mot
 ``reset_motor_off_delay_s`` later (as measured on a real arm); firmware older than S-V1.8-5 ignoring
 0x151 in high-follow until a reset; no enable for a joint past its limit; 0x475 clear-error; 0x474 /
 0x475 joint speed and acceleration caps; 0x477 / 0x47A / 0x47B collision-protection levels;
-firmware-version and limit replies; host frames lost on the firmware's side (``lose_next``). Leader role
+firmware-version and limit replies; host frames lost on the firmware's side (``lose_next``); motor currents
+(0x25x) that grow with the position error a motor is driven against, e.g. a joint held by contact
+(``block_joint`` here, the plant's contact with one), with the current sensor's 1 mA noise. Leader role
 (0x470 0xFA): emits 0x151 / 0x155..0x157 / 0x159 from a scripted or given trajectory and ignores host
 commands.
 
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import random
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -107,6 +110,16 @@ _REACHED_TOLERANCE_RAD = 1e-4
 _LIMIT_TOLERANCE_RAD = 1e-6
 _TIME_EPS = 1e-12
 _ARM_IDS = FEEDBACK_IDS | set(ID_END_POSE)  # arm -> host frames (0x4AF only when it is not a query)
+# The 0x25x current of an enabled motor (A): what it draws holding, per rad/s of speed, and per rad of
+# position error it is driven against (its position controller's P effort: the planner's setpoint minus
+# where the joint is, which only contact or a load makes large), up to the motor's limit; then the current
+# sensor's noise, a uniform whole number of mA in ±CURRENT_NOISE_MA (0x25x carries 1 mA steps), so a live
+# arm's 0x25x frames do not repeat for long while a stuck sender's do.
+CURRENT_HOLD_A = 0.2
+CURRENT_PER_RAD_S_A = 0.5
+CURRENT_PER_RAD_A = 10.0
+CURRENT_MAX_A = 8.0
+CURRENT_NOISE_MA = 1
 
 
 def scripted_leader(t: float) -> tuple[tuple[float, ...], float]:
@@ -213,6 +226,7 @@ class _Joint:
     velocity: float = 0.0
     enabled: bool = False
     fault_bits: int = 0
+    blocked: bool = False  # held where it is (kinematic model): contact, a hard stop
 
 
 @dataclass
@@ -249,12 +263,14 @@ class PiperFirmware:
         self.silent = False
         self.leader_pose: tuple[tuple[float, ...], float] | None = None
         self._frozen: list[Frame] | None = None
+        self._last_feedback: dict[int, Frame] = {}  # the newest feedback frame per ID, for freeze_feedback
         self._pending_role: str | None = None
         # Flash settings (kept over power cycles): 0x474 joint speed caps (the model reads 0x474/0x473 speeds
         # in 0.01 rad/s), 0x475 acceleration caps (reported, not modelled), 0x47A collision levels.
         self.joint_max_speed_rad_s = [self.config.max_speed_rad_s] * NUM_JOINTS
         self.joint_max_accel_rad_s2 = [5.0] * NUM_JOINTS
         self.collision_levels = tuple(self.config.collision_levels)
+        self._sensor_noise = random.Random(self.config.seed)
         self.power_cycle()
 
     # ------------------------------------------------------------------------- ground truth
@@ -354,8 +370,11 @@ class PiperFirmware:
             self.arm_status = ArmStatusCode.NORMAL
 
     def freeze_feedback(self, frozen: bool = True) -> None:
-        """Keep emitting, but the same frames as now (values stop changing)."""
-        self._frozen = self._feedback_frames(low_speed=True) if frozen else None
+        """Keep emitting, but the frames last emitted, bit for bit (a stuck sender: values stop changing)."""
+        if not frozen:
+            self._frozen = None
+            return
+        self._frozen = [*self._last_feedback.values()] or self._feedback_frames(low_speed=True)
 
     def set_position(self, joint: int, position_rad: float) -> None:
         """Force a joint (e.g. pushed by hand past a limit); its target follows. Kinematic model only."""
@@ -364,6 +383,17 @@ class PiperFirmware:
         self._joints[joint - 1].position = position_rad
         self._joints[joint - 1].target = position_rad
         self._joints[joint - 1].setpoint = position_rad
+
+    def block_joint(self, joint: int, blocked: bool = True) -> None:
+        """Hold a joint where it is (pressing on a button or the table, at a hard stop): its planner's setpoint
+        runs on toward the target and its motor pushes against the error. Released, it moves on from where it
+        is at the mode's speed. Kinematic model only."""
+        if self.plant is not None:
+            raise RuntimeError("a plant's joints are held by its own contacts")
+        held = self._joints[joint - 1]
+        held.blocked = blocked
+        if not blocked:
+            held.setpoint = held.position
 
     def set_enabled(self, joint: int, enabled: bool) -> None:
         """Force a joint's driver on or off (e.g. a driver that cut out), without any host frame."""
@@ -653,6 +683,8 @@ class PiperFirmware:
             else:
                 joint.position = self._plan(j, joint, dt)
             joint.setpoint = joint.position
+            if joint.blocked:
+                joint.position = before
             joint.velocity = (joint.position - before) / dt if dt > 0 else 0.0
 
     def _move_gripper(self, dt: float) -> None:
@@ -704,9 +736,11 @@ class PiperFirmware:
             self._next_low_speed_s += self.config.low_speed_period_s
             if self._next_low_speed_s <= self.time_s:  # far behind: restart the grid, no burst
                 self._next_low_speed_s = self.time_s + self.config.low_speed_period_s
-        frames = self._frozen if self._frozen is not None else self._feedback_frames(low_speed)
-        if self._frozen is not None and not low_speed:
-            frames = [f for f in frames if f.arbitration_id not in ID_LOW_SPEED]
+        if self._frozen is None:
+            frames = self._feedback_frames(low_speed)
+            self._last_feedback.update((f.arbitration_id, f) for f in frames)
+        else:
+            frames = [f for f in self._frozen if low_speed or f.arbitration_id not in ID_LOW_SPEED]
         return [f for f in frames if f.arbitration_id not in self.drop_ids]
 
     def _feedback_frames(self, low_speed: bool) -> list[Frame]:
@@ -720,14 +754,21 @@ class PiperFirmware:
         frames.append(encode(GripperFeedback(self.gripper_m, g.effort if g.enabled else 0.0, gripper_status)))
         if full:
             for j, joint in enumerate(self._joints, start=1):
-                current = 0.2 + 0.5 * abs(joint.velocity) if joint.enabled else 0.0
-                frames.append(encode(HighSpeedInfo(j, joint.velocity, current, joint.position)))
+                frames.append(encode(HighSpeedInfo(j, joint.velocity, self._current(joint), joint.position)))
         if low_speed:
             for j, joint in enumerate(self._joints, start=1):
                 status = joint.fault_bits | (1 << ENABLED_BIT if joint.enabled else 0)
                 bus_current = (0.3 if joint.enabled else 0.05) if j <= 3 else 0.0
                 frames.append(encode(LowSpeedInfo(j, 24.0, 30, 28, status, bus_current)))
         return frames
+
+    def _current(self, joint: _Joint) -> float:
+        """The 0x25x current (A) of one motor; 0 when its driver is off (see ``CURRENT_PER_RAD_A``)."""
+        if not joint.enabled:
+            return 0.0
+        pushed = CURRENT_PER_RAD_A * abs(joint.setpoint - joint.position)
+        drawn = min(CURRENT_HOLD_A + CURRENT_PER_RAD_S_A * abs(joint.velocity) + pushed, CURRENT_MAX_A)
+        return drawn + self._sensor_noise.randint(-CURRENT_NOISE_MA, CURRENT_NOISE_MA) / 1e3
 
     def _status(self) -> ArmStatus:
         reached = all(abs(j.target - j.setpoint) < _REACHED_TOLERANCE_RAD for j in self._joints)
