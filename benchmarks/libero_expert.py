@@ -5,7 +5,7 @@ Runs ``lerobot-cso demos`` with every episode kept (``keep_failed``), so that ea
 expert reads the simulator; rendering changes nothing it does), then writes per task: episodes, successes, rate ±
 one binomial standard error, and the steps a success took. Tasks run one after the other, each into its own dataset
 under ``--work`` (resumed from there), and the results file is rewritten after each task, so an interrupted run keeps
-every finished task.
+every finished task; the rows of tasks this run does not reach stay as an earlier run wrote them.
 
     python benchmarks/libero_expert.py --tasks=libero_object --episodes_per_task=50 \
         --work=outputs/libero_expert --results=outputs/libero_expert.json
@@ -39,7 +39,8 @@ def main() -> None:
     args = parser.parse_args()
     every = DemosConfig(tasks=args.tasks, output_dir=args.work).validate()
     record = {"benchmark": "libero_expert", "command": "python benchmarks/libero_expert.py " + " ".join(sys.argv[1:])}
-    record["tasks"] = {}
+    earlier = json.loads(args.results.read_text())["tasks"] if args.results.is_file() else {}
+    record["tasks"] = dict(earlier)
     for task in every:
         cfg = DemosConfig(
             tasks=task,
