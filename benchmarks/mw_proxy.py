@@ -279,7 +279,8 @@ def main() -> int:
         results["wall_seconds_this_run"] = time.perf_counter() - started
         results |= provenance()  # the commit, machine and date of the latest run that added results
         save(args.results, results)
-        plot(results, args.results.with_suffix(".png"))
+        if results["spo_history"]:  # the curves of SPO runs: none before a seed's SPO (e.g. --stop_after=eval_il)
+            plot(results, args.results.with_suffix(".png"))
     print(table(results))
     return 0
 
