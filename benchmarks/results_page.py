@@ -77,6 +77,8 @@ def seeds_at_least(r: Results, a: str, b: str, goal: float) -> tuple[int, int, s
 def gain(goal: float, key: str = "cso_minus_il", a: str = "cso", b: str = "il", ci: bool = False) -> Callable:
     def read(r: Results) -> tuple[str, str]:
         d = r[key]
+        if d["ci95"] is None:  # one seed so far: no interval, and no verdict on a goal over seeds
+            return f"{num(100 * d['mean'], True)}, seed {d['seeds'][0]} only", "not shown yet (1 seed)"
         ok_mean = d["mean"] >= goal and (not ci or d["ci95"][0] > 0)
         k, n, short = seeds_at_least(r, a, b, goal)
         seeds = f"{k} of {n} seeds" + (f" ({short})" if short else "")

@@ -63,3 +63,20 @@ def test_the_readmes_results_table_is_read_from_the_page():
     for _, rates, gain, link in rows[1:]:
         assert set(re.findall(r"[+−]?\d+\.?\d*", rates + gain)) <= on_page, (rates, gain)
         assert (ROOT / re.search(r"\((benchmarks/results/[\w.]+)\)", link)[1]).is_file()
+
+
+def test_a_gain_of_one_seed_is_shown_without_a_verdict(tmp_path):
+    """A benchmark with one training seed so far (LIBERO-Object) has no interval over seeds: its CSO − IL row gives
+    the seed's difference and waits for more seeds instead of judging the goal."""
+    results = tmp_path / "results"
+    shutil.copytree(ROOT / "benchmarks" / "results", results, ignore=shutil.ignore_patterns("*.png"))
+    path = results / "libero_object.json"
+    data = json.loads(path.read_text())
+    data["methods"]["cso"]["per_seed"] = {"0": 0.25}
+    data["cso_minus_il"] = {"mean": 0.25, "ci95": None, "seeds": ["0"]}
+    path.write_text(json.dumps(data))
+    out = tmp_path / "results.md"
+    run = page(f"--results_dir={results}", f"--page={out}", f"--plot={tmp_path / 'plot.png'}")
+    assert run.returncode == 0, run.stderr
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| CSO − IL ≥ +10 points, CI above 0"))
+    assert "| +25.0, seed 0 only | not shown yet (1 seed) |" in row
