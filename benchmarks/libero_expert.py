@@ -38,9 +38,11 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=Path("outputs/libero_expert.json"))
     args = parser.parse_args()
     every = DemosConfig(tasks=args.tasks, output_dir=args.work).validate()
-    record = {"benchmark": "libero_expert", "command": "python benchmarks/libero_expert.py " + " ".join(sys.argv[1:])}
-    earlier = json.loads(args.results.read_text())["tasks"] if args.results.is_file() else {}
-    record["tasks"] = dict(earlier)
+    command = "python benchmarks/libero_expert.py " + " ".join(sys.argv[1:])
+    earlier = json.loads(args.results.read_text()) if args.results.is_file() else {"tasks": {}}
+    if earlier.get("command") and earlier["command"].split("; ")[-1] != command:
+        command = earlier["command"] + "; " + command  # the runs that wrote the rows, in order
+    record = {"benchmark": "libero_expert", "command": command, "tasks": dict(earlier["tasks"])}
     for task in every:
         cfg = DemosConfig(
             tasks=task,

@@ -201,13 +201,15 @@ def expert_success(r: Results) -> tuple[str, str]:
     rows = r["tasks"]
     placements = min(t["episodes"] for t in rows.values())
     low = min(rows, key=lambda task: rows[task]["rate"])
-    done = sum(t["successes"] for t in rows.values())
-    text = (
-        f"{len(rows)} of 10 tasks, {placements} placements each: {done}/{placements * len(rows)} in all, the lowest "
-        f"{pct(rows[low]['rate'])} ± {pct(rows[low]['se'])} % ({low})"
-    )
+    counts = sorted({t["episodes"] for t in rows.values()}, reverse=True)
+    parts = []
+    for n in counts:  # the tasks run at each number of placements
+        group = [t for t in rows.values() if t["episodes"] == n]
+        parts.append(f"{len(group)} tasks × {n}: {sum(t['successes'] for t in group)}/{n * len(group)}")
+    text = f"{'; '.join(parts)}; the lowest {pct(rows[low]['rate'])} ± {pct(rows[low]['se'])} % ({low})"
     if placements < 50 or len(rows) < 10:
-        return text, f"not shown yet ({placements} of 50 placements, {len(rows)} of 10 tasks)"
+        full = sum(t["episodes"] >= 50 for t in rows.values())
+        return text, f"not shown yet ({full} of 10 tasks at 50 placements)"
     return text, verdict(all(t["rate"] >= 0.9 for t in rows.values()))
 
 
