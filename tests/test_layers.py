@@ -18,7 +18,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("lerobot_cso", "lerobot_cso.errors", "lerobot_cso.seeds", "lerobot_cso.stage", "lerobot_cso.frames"),
     ("lerobot_cso.durable", "lerobot_cso.sampling"),
     ("lerobot_cso.policy",),
-    ("lerobot_cso.checkpoints", "lerobot_cso.cso.objectives"),
+    ("lerobot_cso.checkpoints", "lerobot_cso.cso.objectives", "lerobot_cso.untrained"),
     ("lerobot_cso.rollout",),  # the rollout machinery: engine, backend, pool; no world, no stage
     ("lerobot_cso.worlds",),
     ("lerobot_cso.distributed", "lerobot_cso.records"),
