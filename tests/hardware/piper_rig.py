@@ -16,9 +16,12 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import can
+import pytest
+from piper_can import codec
 from piper_can.clock import SYSTEM_CLOCK, Clock, SimulatedClock
 from piper_can.driver import PiperDriver
 from piper_can.emulator import PiperEmulator
+from piper_can.errors import FeedbackStaleError
 from piper_can.firmware import EmulatorConfig, PiperFirmware, Plant
 from piper_can.settings import DriverConfig
 
@@ -129,3 +132,29 @@ def wait_until(condition, timeout: float = 2.0, period: float = 0.002) -> bool:
             return True
         time.sleep(period)
     return condition()
+
+
+MOTION_IDS = (0x151, *codec.ID_JOINT_COMMAND, 0x159)  # frames that select a mode or move the arm
+
+
+def stale_after(rig: Rig, target, message: str, period_s: float = 0.01) -> float:
+    """Freeze the feedback (frames keep coming, nothing in them changes), command ``target`` every ``period_s``;
+    the time until the driver refuses with ``message`` in its error, having sent no motion frame since."""
+    with rig.emulator.locked() as arm:
+        arm.freeze_feedback()
+    frozen_at = rig.now()
+    for _ in range(int(1.0 / period_s)):
+        try:
+            rig.driver.command(target)
+        except FeedbackStaleError as exc:
+            assert message in str(exc)
+            refused_at = rig.now()
+            break
+        rig.sleep(period_s)
+    else:
+        raise AssertionError("a frozen feed was commanded through for 1 s")
+    rig.drain()
+    with pytest.raises(FeedbackStaleError):
+        rig.driver.command(target)
+    assert [m for m in rig.drain() if m.arbitration_id in MOTION_IDS] == []
+    return refused_at - frozen_at

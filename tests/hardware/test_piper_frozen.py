@@ -9,9 +9,8 @@ import pytest
 from piper_can import codec
 from piper_can.codec import MIT_MODE_POSITION_VELOCITY, MOTOR_ALL_JOINTS, CtrlMode, ModeControl, MotorEnable, MoveMode
 from piper_can.driver import FROZEN_AFTER_S, FROZEN_MIN_MOVE_RAD
-from piper_can.errors import FeedbackStaleError
 from piper_can.firmware import EmulatorConfig, PiperFirmware
-from piper_rig import Rig, make_rig
+from piper_rig import Rig, make_rig, stale_after
 from piper_twin.demo import ScriptedDemo, Waypoint, plan
 from piper_twin.plant import TwinPlant
 
@@ -20,7 +19,7 @@ INTO = (0.8, 0.8, -0.6, 0.2, 0.1, -0.2)  # J1 0.5 rad on, past what the step lim
 STEP_RAD = 0.2  # DriverConfig.max_step_rad's default
 COMMAND_PERIOD_S = 0.01
 FRAME_S = 0.005
-MOTION_IDS = (*codec.ID_JOINT_COMMAND, 0x159)
+FROZEN_MESSAGE = "keeps arriving with the same angles and motor currents"
 
 
 def high_speed(frames: list[codec.Frame], joint: int) -> codec.HighSpeedInfo:
@@ -80,33 +79,10 @@ def test_an_arm_held_by_contact_keeps_being_commanded_with_clamped_targets():
         assert pushed == pytest.approx(0.2 + 10.0 * STEP_RAD, abs=0.002)  # the motor pushes against the block
 
 
-def stale_after(rig: Rig, target) -> float:
-    """Freeze the feedback (frames keep coming, nothing in them changes), command ``target`` every 10 ms;
-    the time until the driver refuses, having sent no motion frame since."""
-    with rig.emulator.locked() as arm:
-        arm.freeze_feedback()
-    frozen_at = rig.now()
-    for _ in range(100):
-        try:
-            rig.driver.command(target)
-        except FeedbackStaleError as exc:
-            assert "keeps arriving with the same angles and motor currents" in str(exc)
-            refused_at = rig.now()
-            break
-        rig.sleep(COMMAND_PERIOD_S)
-    else:
-        raise AssertionError("a frozen feed was commanded through for 1 s")
-    rig.drain()
-    with pytest.raises(FeedbackStaleError):
-        rig.driver.command(target)
-    assert [m for m in rig.drain() if m.arbitration_id in MOTION_IDS] == []
-    return refused_at - frozen_at
-
-
 def test_a_stuck_feed_with_motor_frames_still_trips_within_the_window():
     with make_rig(EmulatorConfig()) as rig:
         walk_to(rig, POSE)
-        assert stale_after(rig, INTO) <= FROZEN_AFTER_S + COMMAND_PERIOD_S + 1e-9
+        assert stale_after(rig, INTO, FROZEN_MESSAGE) <= FROZEN_AFTER_S + COMMAND_PERIOD_S + 1e-9
 
 
 def test_a_feed_frozen_while_a_joint_pushes_still_trips():
@@ -118,7 +94,7 @@ def test_a_feed_frozen_while_a_joint_pushes_still_trips():
             rig.driver.command(INTO)
             rig.sleep(COMMAND_PERIOD_S)
         assert rig.driver.state().high_speed[0].value.current_a > 2.0
-        assert stale_after(rig, INTO) <= FROZEN_AFTER_S + COMMAND_PERIOD_S + 1e-9
+        assert stale_after(rig, INTO, FROZEN_MESSAGE) <= FROZEN_AFTER_S + COMMAND_PERIOD_S + 1e-9
 
 
 def press_through(scene, model, data, close_s):
