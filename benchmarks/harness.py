@@ -1,5 +1,6 @@
-"""What the benchmarks here share: the 95 % interval of a paired difference, and the record of how a results file
-was made (the commit, the machine and the date of its latest run; the benchmark keeps its own commands).
+"""What the benchmarks here share: the 95 % interval of a paired difference, the record of how a results file
+was made (the commit, the machine and the date of its latest run; the benchmark keeps its own commands), and a
+checkpoint's skill autoencoder as an action filter (the skill-replay benchmarks of the twin and of LIBERO).
 
 A benchmark run as ``python benchmarks/<script>.py`` imports this module by name (its folder is on ``sys.path``).
 """
@@ -12,6 +13,14 @@ import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import torch
+from lerobot.lerobot_types import TransitionKey
+from lerobot.processor import NormalizerProcessorStep
+from lerobot.processor.converters import create_transition
+
+from lerobot_cso.checkpoints import load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 # Student t quantiles for a two-sided 95 % interval, by degrees of freedom (a paired difference over a few seeds)
@@ -46,3 +55,25 @@ def provenance() -> dict[str, str | None]:
         commit = None
     machine = f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}"
     return {"commit": commit, "machine": machine, "date": datetime.date.today().isoformat()}
+
+
+class Reconstruction:
+    """A checkpoint's autoencoder as an action filter: raw actions (T, A) → the decoded executed prefixes (T, A)."""
+
+    def __init__(self, path: str) -> None:
+        self.policy, pre, self.post = load_policy(path)
+        self.policy.eval()
+        self.normalize = next(s for s in pre.steps if isinstance(s, NormalizerProcessorStep))
+
+    @torch.no_grad()
+    def __call__(self, actions: np.ndarray) -> np.ndarray:
+        cfg = self.policy.config
+        raw = torch.as_tensor(actions, dtype=torch.float32)
+        normalized = self.normalize(create_transition(action=raw))[TransitionKey.ACTION]
+        out = []
+        for start in range(0, len(raw), cfg.n_action_steps):
+            chunk = normalized[start : start + cfg.chunk_size]  # padded with its last action, as the dataset pads
+            chunk = torch.cat([chunk, chunk[-1:].expand(cfg.chunk_size - len(chunk), -1)])
+            decoded, _ = self.policy.autoencoder(chunk[None])
+            out.append(self.post(decoded[0, : cfg.n_action_steps]))
+        return torch.cat(out)[: len(raw)].numpy()

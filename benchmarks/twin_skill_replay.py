@@ -24,16 +24,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
+from harness import Reconstruction
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.lerobot_types import TransitionKey
-from lerobot.processor import NormalizerProcessorStep
-from lerobot.processor.converters import create_transition
 from lerobot_robot_piper.config_piper_twin_sim import PiperTwinSimConfig
 from lerobot_robot_piper.piper_twin_sim import PiperTwinSim
 from twin_table5 import REST_POSE, SETTLE_S
-
-from lerobot_cso.checkpoints import load_policy
 
 TAIL_S = 2.0  # the last action held this long before the verdict
 
@@ -57,28 +52,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.out is not None and not os.access(args.out.parent, os.W_OK):
         p.error(f"--out={args.out}: its folder does not exist or is not writable")
     return args
-
-
-class Reconstruction:
-    """A checkpoint's autoencoder as an action filter: raw actions (T, A) → the decoded executed prefixes (T, A)."""
-
-    def __init__(self, path: str) -> None:
-        self.policy, pre, self.post = load_policy(path)
-        self.policy.eval()
-        self.normalize = next(s for s in pre.steps if isinstance(s, NormalizerProcessorStep))
-
-    @torch.no_grad()
-    def __call__(self, actions: np.ndarray) -> np.ndarray:
-        cfg = self.policy.config
-        raw = torch.as_tensor(actions, dtype=torch.float32)
-        normalized = self.normalize(create_transition(action=raw))[TransitionKey.ACTION]
-        out = []
-        for start in range(0, len(raw), cfg.n_action_steps):
-            chunk = normalized[start : start + cfg.chunk_size]  # padded with its last action, as the dataset pads
-            chunk = torch.cat([chunk, chunk[-1:].expand(cfg.chunk_size - len(chunk), -1)])
-            decoded, _ = self.policy.autoencoder(chunk[None])
-            out.append(self.post(decoded[0, : cfg.n_action_steps]))
-        return torch.cat(out)[: len(raw)].numpy()
 
 
 def replay(robot: PiperTwinSim, seed: int, actions: np.ndarray, fps: int, rest_time_s: float) -> bool:
