@@ -1,7 +1,8 @@
 """Per-initial-state success of a policy: how much of its failure is systematic (the state) vs stochastic (sampling).
 
 Rolls the policy out ``--k`` times from each of ``--states`` initial states per task, drawn from the SPO part
-of the training seed range (never the evaluation range), at the given sampling settings, and prints per task:
+of the training seed range (never the evaluation range), in the world its tasks name (MetaWorld, LIBERO), at the
+given sampling settings, and prints per task:
 the histogram of successes per state (0 … K), the share of states that always fail / always succeed / are
 mixed, the SPO rejection rate this predicts for other group sizes (mean over states of p^K + (1 − p)^K with
 the measured per-state rates p), and the entropy of the sampled skill tokens (mean of −log π of the sampled
@@ -9,6 +10,8 @@ tokens: an unbiased estimate of the per-token entropy of the sampling distributi
 (to pair states across sampling settings). ``--json`` saves it.
 
     python benchmarks/studies/state_diagnosis.py --policy_path=CKPT --tasks=reach-v3,button-press-v3 --states=40 --k=8
+    python benchmarks/studies/state_diagnosis.py --policy_path=CKPT --tasks=libero_object-0 --states=8 --k=2 \\
+        --num_envs=2
 """
 
 import argparse
@@ -23,8 +26,8 @@ from lerobot_cso import seeds
 from lerobot_cso.checkpoints import load_policy
 from lerobot_cso.rollout.engine import RolloutEngine
 from lerobot_cso.sampling import Sampling
-from lerobot_cso.worlds.metaworld.tasks import resolve_tasks, task_description
-from lerobot_cso.worlds.metaworld.world import policy_pool
+from lerobot_cso.worlds.base import Rollouts, camera_inputs
+from lerobot_cso.worlds.registry import default_world
 
 
 def main() -> int:
@@ -35,22 +38,30 @@ def main() -> int:
     parser.add_argument("--k", type=int, default=8)
     parser.add_argument("--temperature", type=float, default=1.0)
     parser.add_argument("--top_k", type=int, default=5)
-    parser.add_argument("--max_steps", type=int, default=200)
+    parser.add_argument(
+        "--max_steps",
+        type=int,
+        default=None,
+        help="the episode cap (default: the world's; the MetaWorld studies recorded before 2026-12-07 ran at 200)",
+    )
     parser.add_argument("--num_envs", type=int, default=32)
     parser.add_argument("--seed", type=int, default=7, help="the rollouts' sampling seed")
     parser.add_argument("--vectorization", default="processes")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    tasks = resolve_tasks(args.tasks)
     policy, pre, post = load_policy(args.policy_path)
+    world = default_world(args.tasks).build(args.tasks, policy.config, None)
+    tasks = world.resolve_tasks(args.tasks)
     # The last states of the SPO half of the training range: SPO's own runs start from its first ones.
     first = len(seeds.TRAIN) // 2 - args.states
-    states = [(t, s) for t in tasks for s in seeds.training_seeds("spo", first, args.states)]
+    states = [(t, s) for t in tasks for s in world.training_states(t, "spo", first, args.states)]
     sampling = Sampling(temperature=args.temperature, top_k=args.top_k)
     features = policy.config.input_features  # a camera policy's too
-    pool = policy_pool(features, args.num_envs, args.max_steps, args.vectorization, frames="decisions")
-    with RolloutEngine(policy, pre, post, pool, task_description) as engine:
+    horizon = world.horizon if args.max_steps is None else args.max_steps
+    cameras = tuple(camera_inputs(features, world).values())
+    rollouts = Rollouts(args.num_envs, args.vectorization, horizon, args.max_steps, "decisions", cameras, features)
+    with RolloutEngine(policy, pre, post, world.backend(rollouts), world.task_description) as engine:
         result = engine.rollout(states, k=args.k, sampling=sampling, seed=args.seed, progress="diagnosis")
     report = {"policy": str(args.policy_path), "k": args.k, "sampling": vars(sampling), "tasks": {}}
     for task in tasks:
