@@ -151,6 +151,13 @@ def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
     )
 
 
+def record_rates(results: dict[str, Any], method: str, key: str, rows: dict[str, Any]) -> None:
+    """A method's evaluation on seed ``key``: the overall rate, and each task's (``per_task_per_seed``)."""
+    entry = results["methods"][method]
+    entry["per_seed"][key] = rows["overall"]["mean"]
+    entry.setdefault("per_task_per_seed", {})[key] = {t: row["mean"] for t, row in rows.items() if t != "overall"}
+
+
 def run_seed(
     cfg: PipelineConfig, seed: int, work: Path, results: dict[str, Any], path: Path, methods: tuple[str, ...]
 ) -> None:
@@ -163,7 +170,7 @@ def run_seed(
     cfg = pipeline.cfg
     out = pipeline.run()
     for method, rows in out["success_rate"].items():  # every evaluation done, even in a stopped run
-        results["methods"][method]["per_seed"][key] = rows["overall"]["mean"]
+        record_rates(results, method, key, rows)
     results.setdefault("stage_seconds", {})[key] = out["stage_seconds"]
     if "stopped_after" in out:
         save(path, results)
@@ -188,7 +195,7 @@ def run_seed(
         )
         history = run_spo(spo_cfg)
         rows = evaluate(pipeline.eval_config(method, policy_config(spo_cfg.output_dir / "pretrained_model")))
-        results["methods"][method]["per_seed"][key] = rows["overall"]["mean"]
+        record_rates(results, method, key, rows)
         record_spo(results, method, key, history)
         results["seconds"][key][method] = time.perf_counter() - t0
         save(path, results)

@@ -347,9 +347,10 @@ def test_mw_proxy_bad_input_is_one_error_line_after_its_usage(mw_proxy, monkeypa
 
 
 def test_mw_proxy_stopped_records_the_evaluations_done_and_the_same_command_continues(mw_proxy, tmp_path, monkeypatch):
-    """With --stop_after, a seed's pipeline records what it evaluated (here IL) and its stage times, and leaves the
-    other methods to the same command without it, which then records them and its SPO-only run."""
-    rows = {"il": {"overall": {"mean": 0.25}}, "rsft": {"overall": {"mean": 0.5}}, "cso": {"overall": {"mean": 0.75}}}
+    """With --stop_after, a seed's pipeline records what it evaluated (here IL: overall and per task) and its stage
+    times, and leaves the other methods to the same command without it, which then records them."""
+    il = {"task-a": {"mean": 0.5}, "task-b": {"mean": 0.0}, "overall": {"mean": 0.25}}
+    rows = {"il": il, "rsft": {"overall": {"mean": 0.5}}, "cso": {"overall": {"mean": 0.75}}}
     ran: list[str | None] = []
 
     class Stopped:  # the pipeline of one seed, stopped after IL's evaluation or run to its end
@@ -377,6 +378,7 @@ def test_mw_proxy_stopped_records_the_evaluations_done_and_the_same_command_cont
     saved = json.loads(path.read_text())
     assert {m: e["per_seed"] for m, e in saved["methods"].items() if e["per_seed"]} == {"il": {"0": 0.25}}
     assert saved["methods"]["il"]["mean"] == 0.25 and saved["stage_seconds"]["0"]["eval_il"] == 3.0
+    assert saved["methods"]["il"]["per_task_per_seed"] == {"0": {"task-a": 0.5, "task-b": 0.0}}
     mw_proxy.run_seed(cfg, 0, tmp_path, results, path, ("il", "rsft", "cso"))
     saved = json.loads(path.read_text())
     assert {m: saved["methods"][m]["per_seed"] for m in rows} == {
