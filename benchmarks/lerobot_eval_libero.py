@@ -15,6 +15,7 @@ rates agree only within their noise (one binomial standard error each is recorde
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -45,6 +46,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--cso_eval={args.cso_eval} does not exist")
     if args.work.exists():
         p.error(f"--work={args.work} exists; lerobot-eval writes a new folder")
+    if args.out is not None and not os.access(args.out.parent, os.W_OK):
+        p.error(f"--out={args.out}: its folder does not exist or is not writable")
+    if "observation.images.image" not in json.loads((args.policy / "config.json").read_text())["input_features"]:
+        p.error(f"--policy={args.policy} reads no observation.images.image (agentview): not a LIBERO camera policy")
     try:
         parse_task(args.task)
     except ValueError as e:
@@ -83,7 +88,9 @@ def main(argv: list[str] | None = None) -> dict:
         "--eval.batch_size=1",
         f"--output_dir={args.work}",
     ]
-    subprocess.run(command, check=True)
+    done = subprocess.run(command)
+    if done.returncode != 0:
+        sys.exit(f"error: lerobot-eval exited with {done.returncode} (its output is above)")
     info = json.loads((args.work / "eval_info.json").read_text())
     lerobot = [bool(s) for s in info["per_task"][0]["metrics"]["successes"]]
     cso = cso_successes(args.cso_eval, args.task, args.episodes)

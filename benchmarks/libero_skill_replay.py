@@ -15,6 +15,7 @@ LIBERO's, checked after every action; the mean absolute reconstruction error per
 
 import argparse
 import json
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -39,6 +40,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--episodes_per_task must be >= 1, got {args.episodes_per_task}")
     if not (args.demos / "meta" / "info.json").is_file():
         p.error(f"--demos={args.demos} is not a LeRobotDataset (no meta/info.json)")
+    if args.out is not None and not os.access(args.out.parent, os.W_OK):
+        p.error(f"--out={args.out}: its folder does not exist or is not writable")
     missing = [path for path in args.policy if not (Path(path) / "config.json").is_file()]
     if missing:
         p.error(f"--policy={missing[0]} is not a saved policy (no config.json)")
