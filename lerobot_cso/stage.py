@@ -27,6 +27,7 @@ POLICY_ROLES = {
 # value is another spec). A new setting whose default keeps the old behaviour is added here with that default.
 ADDED_SETTINGS: dict[str, Any] = {
     "stop_state_at_cap": False,
+    "keep_short_tasks": False,
     "train_threads": None,
     "advantage_weighted": False,
     "state": "full",

@@ -239,6 +239,32 @@ def test_standalone_rsft_stopped_at_its_state_budget_continues_into_a_larger_one
     assert code == 2 and "(rsft.max_states_per_task: 8 → 4)" in err
 
 
+def test_rsft_keeps_a_task_it_never_solves_short_and_refuses_to_pass_that_off_as_a_larger_budget(
+    two_policies, tmp_path, capsys, monkeypatch
+):
+    """``--keep_short_tasks``: a task never solved within its state budget keeps no success and the run finishes on
+    the others; the finished output is then not relabelled as a larger budget's, which would have tried more."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    engines: list[ScriptedEngine] = []
+
+    def engine(policy, pre, post, cfg) -> ScriptedEngine:
+        engines.append(ScriptedEngine(lambda task, seed, sample: task == TASKS[1], policy=policy))
+        return engines[-1]
+
+    monkeypatch.setattr(rollout_stage, "stage_engine", engine)
+    out = tmp_path / "rsft"
+    rsft = ["rsft", f"--tasks={','.join(TASKS)}", f"--output_dir={out}", f"--policy.path={two_policies[0]}"]
+    rsft += ["--successes_per_task=1", "--n_strikes=2", "--states_per_round=1", "--keep_short_tasks=true"]
+    rsft += ["--epochs=1", "--batch_size=8", "--lr=0.001", "--min_lr=0.0001"]
+    code, stdout, _ = run_cli([*rsft, "--max_states_per_task=2"], capsys)
+    assert code == 0 and f"R-SFT: {TASKS[0]} keeps 0 of 1 successes, its budget of 2 initial states" in stdout
+    assert len({s.seed for call in engines[0].calls for s in call if s.task == TASKS[0]}) == 2
+    report = json.loads((out / "collection.json").read_text())
+    assert (report[TASKS[0]]["kept"], report[TASKS[0]]["states_tried"], report[TASKS[1]]["kept"]) == (0, 2, 1)
+    code, _, err = run_cli([*rsft, "--max_states_per_task=3"], capsys)
+    assert code == 2 and f"finished with {TASKS[0]} short of successes after 2 initial states" in err
+
+
 def test_work_without_its_own_record_is_never_adopted(two_policies, tmp_path, capsys, scripted_rollouts):
     """Issue 58, item 1: an SPO or R-SFT output without its own record (made by the pipeline, or before the record
     existed) was continued or skipped under any policy and settings, and a pipeline adopted a standalone command's

@@ -97,6 +97,11 @@ class RSFTConfig(TrainingStageConfig):
     # most of a camera collection's time (≈ 10 ms a 64² frame against 0.25 ms a MuJoCo step, docs/cso-on-cpu.md).
     buffer_frames: str = "all"
     max_states_per_task: int = 2000
+    # Not in the paper, which collects until every task holds its successes: a task still short of
+    # successes_per_task after max_states_per_task initial states keeps what it holds (possibly none; the report
+    # shows it) instead of stopping the run with an error. This bounds the collection's cost where the IL
+    # policy never solves a task.
+    keep_short_tasks: bool = False
     seed: int = 0
     # Fine-tuning (Eq. 6, App. E.2) with the policy's own optimizer and scheduler presets (lerobot-train's),
     # at this peak / final learning rate.
@@ -226,16 +231,19 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
         while True:
             kept = {t: len(journal.episode_files(t)) for t in tasks}
             todo = [t for t in tasks if kept[t] < cfg.successes_per_task]
+            short = [t for t in todo if len(journal.states(t)) >= cfg.max_states_per_task]
+            if short and not cfg.keep_short_tasks:
+                raise UsageError(
+                    f"{short[0]}: only {kept[short[0]]} successes after {len(journal.states(short[0]))} initial "
+                    "states; the IL policy rarely solves it (raise --max_states_per_task, lower "
+                    "--successes_per_task or pass --keep_short_tasks=true)"
+                )
+            todo = [t for t in todo if t not in short]
             if not todo:
                 break
             requests = []
             for task in todo:
                 tried = journal.states(task)
-                if len(tried) >= cfg.max_states_per_task:
-                    raise UsageError(
-                        f"{task}: only {kept[task]} successes after {len(tried)} initial states; the IL policy "
-                        f"rarely solves it (raise --max_states_per_task or lower --successes_per_task)"
-                    )
                 fresh = [s for s in world.training_states(task, "rsft", 0, cfg.max_states_per_task) if s not in tried]
                 requests += [InitialState(task, s) for s in fresh[: cfg.states_per_round]]
             round_seed = seeds.round_seed(cfg.seed, requests[0].seed)
@@ -265,6 +273,13 @@ def collect(cfg: RSFTConfig, tasks: list[str], engine: RolloutEngine, journal: J
                     first = group[0]
                     journal.save_state(first.task, first.init_seed, len(group), sum(e.success for e in group))
             distributed.wait_for_everyone()
+    for task in tasks if main else ():
+        if (n := len(journal.episode_files(task))) < cfg.successes_per_task:
+            print(
+                f"R-SFT: {task} keeps {n} of {cfg.successes_per_task} successes, its budget of "
+                f"{cfg.max_states_per_task} initial states spent (--keep_short_tasks)",
+                flush=True,
+            )
 
 
 def buffer_features(
@@ -299,6 +314,11 @@ def write_buffer(cfg: RSFTConfig, tasks: list[str], journal: Journal, n_tokens: 
     work = cfg.output_dir / "buffer.tmp"
     shutil.rmtree(work, ignore_errors=True)
     files = [p for t in tasks for p in journal.episode_files(t)]
+    if not files:
+        raise UsageError(
+            f"the IL policy solved no task in {cfg.max_states_per_task} initial states each: the success buffer "
+            "would be empty (raise --max_states_per_task)"
+        )
     world = cfg.rollout_world()
     redo = (
         f"R-SFT cannot redo one episode as it drew it: delete {cfg.output_dir} to redo R-SFT (deleting only this file "
@@ -547,8 +567,16 @@ def run_rsft(cfg: RSFTConfig, make_engine: Callable[..., RolloutEngine] | None =
     if cfg.demo_fraction:
         check_demos(cfg)  # before the collection, not after it
     if (cfg.output_dir / "pretrained_model" / "config.json").is_file():
+        report = read_json(cfg.output_dir / "collection.json")
+        short = [t for t, r in report.items() if r["kept"] < cfg.successes_per_task]
+        if short and report[short[0]]["states_tried"] < cfg.max_states_per_task:
+            raise UsageError(
+                f"{cfg.output_dir} finished with {short[0]} short of successes after "
+                f"{report[short[0]]['states_tried']} initial states; a larger --max_states_per_task gives another "
+                f"buffer and checkpoint: delete {cfg.output_dir} to redo R-SFT with it"
+            )
         print(f"{cfg.output_dir / 'pretrained_model'} exists: R-SFT already complete")
-        return read_json(cfg.output_dir / "collection.json")
+        return report
     main = distributed.is_main()
     if main:  # creates the journal (or refuses one made with other settings) before any process opens it
         Journal(cfg.output_dir / "journal", cfg.spec())
@@ -590,7 +618,7 @@ class RSFTStage(CheckpointStage):
     # A collection stopped at its state budget continues into more states as the longer budget would have run it
     # from the start: the states are a fixed sequence tried in order, each round's sampling seed is its first
     # state's, and a finished R-SFT is not rerun.
-    grows = ("rsft.max_states_per_task",)
+    grows = ("rsft.max_states_per_task", "rsft.keep_short_tasks")
 
     def run(self) -> dict[str, Any]:
         return run_rsft(self.cfg, self.make_engine)
