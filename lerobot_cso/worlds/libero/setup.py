@@ -88,7 +88,13 @@ def configure() -> Path:
     Raises :class:`LiberoSetupError` (one line naming what to install) when LIBERO or its assets are missing.
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
-    benchmark_root = _package_dir("libero") / "libero"
+    package = _package_dir("libero")
+    benchmark_root = package / "libero"
+    if not (benchmark_root / "bddl_files").is_dir():  # checked before anything is linked into the package
+        raise LiberoSetupError(
+            f"the package 'libero' found first on the path ({package}) is not LIBERO's benchmark (it has no "
+            "libero/bddl_files): remove it from the path, or install LIBERO where it comes first: " + INSTALL_HINT
+        )
     tree = assets_dir()
     _link_assets(benchmark_root, tree)
     folder = config_dir()

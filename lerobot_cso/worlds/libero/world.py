@@ -38,12 +38,14 @@ DEFAULT_HORIZON = 500  # LeRobot's LIBERO default for a suite it does not know
 
 def _env() -> ModuleType:
     """:mod:`lerobot_cso.worlds.libero.env` (configures LIBERO offline on import); ``ValueError`` if not installed."""
-    from lerobot_cso.worlds.libero.setup import LiberoSetupError
+    from lerobot_cso.worlds.libero.setup import INSTALL_HINT, LiberoSetupError
 
     try:
         from lerobot_cso.worlds.libero import env as libero_env
     except LiberoSetupError as e:
         raise ValueError(str(e)) from None
+    except ImportError as e:  # a LIBERO of another layout or version
+        raise ValueError(f"LIBERO cannot be imported ({e}): {INSTALL_HINT}") from None
     return libero_env
 
 
