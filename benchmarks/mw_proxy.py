@@ -127,6 +127,7 @@ def save(path: Path, results: dict[str, Any]) -> None:
         entry["std"] = float(np.std(values, ddof=1)) if len(values) > 1 else None
     for a, b in DIFFERENCES:
         results[f"{a}_minus_{b}"] = paired_difference(results, a, b)
+        results[f"{a}_minus_{b}_per_seed_episodes"] = paired_episodes(results, a, b)
     il, cso = (results["methods"][m]["mean"] for m in ("il", "cso"))
     # the share of IL's gap to 100 % that CSO closes (the paper: 82 % on ML45)
     results["gap_closed"] = None if il is None or cso is None or il == 1 else (cso - il) / (1 - il)
@@ -143,6 +144,18 @@ def paired_difference(results: dict[str, Any], a: str, b: str) -> dict[str, Any]
     return mean_ci(diffs, student=True) | {"seeds": common}
 
 
+def paired_episodes(results: dict[str, Any], a: str, b: str) -> dict[str, Any] | None:
+    """Per seed, the mean of success(a) − success(b) over the evaluation episodes both ran from the same initial
+    state, with a normal 95 % CI: the evaluation's noise alone (not the training seed's), or None without them."""
+    out = {}
+    for seed, mine in results["methods"][a].get("outcomes_per_seed", {}).items():
+        theirs = results["methods"][b].get("outcomes_per_seed", {}).get(seed)
+        if theirs:
+            common = sorted(mine.keys() & theirs.keys())
+            out[seed] = mean_ci([mine[k] - theirs[k] for k in common], student=False) | {"episodes": len(common)}
+    return out or None
+
+
 def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
     return (
         float(np.mean([h["clip_fraction"] for h in history])),
@@ -151,11 +164,16 @@ def spo_summary(history: list[dict[str, Any]]) -> tuple[float, int, int]:
     )
 
 
-def record_rates(results: dict[str, Any], method: str, key: str, rows: dict[str, Any]) -> None:
-    """A method's evaluation on seed ``key``: the overall rate, and each task's (``per_task_per_seed``)."""
+def record_rates(results: dict[str, Any], method: str, key: str, rows: dict[str, Any], eval_dir: Path) -> None:
+    """A method's evaluation on seed ``key``: the overall rate, each task's (``per_task_per_seed``) and each episode's
+    success by task, evaluation seed and initial state (``outcomes_per_seed``, from ``eval_dir``'s eval.json)."""
     entry = results["methods"][method]
     entry["per_seed"][key] = rows["overall"]["mean"]
     entry.setdefault("per_task_per_seed", {})[key] = {t: row["mean"] for t, row in rows.items() if t != "overall"}
+    episodes = json.loads((eval_dir / "eval.json").read_text())["episodes"]
+    entry.setdefault("outcomes_per_seed", {})[key] = {
+        f"{e['task']}/{e['seed']}/{e['init_seed']}": int(e["success"]) for e in episodes
+    }
 
 
 def run_seed(
@@ -170,8 +188,10 @@ def run_seed(
     cfg = pipeline.cfg
     out = pipeline.run()
     for method, rows in out["success_rate"].items():  # every evaluation done, even in a stopped run
-        record_rates(results, method, key, rows)
+        record_rates(results, method, key, rows, cfg.output_dir / "eval" / method)
     results.setdefault("stage_seconds", {})[key] = out["stage_seconds"]
+    if (collection := cfg.output_dir / "rsft" / "collection.json").is_file():  # R-SFT's report (the paper's Table 7)
+        results.setdefault("rsft_collection", {})[key] = json.loads(collection.read_text())
     if "stopped_after" in out:
         save(path, results)
         print(f"[mw_proxy] seed {seed}: stopped after {out['stopped_after']}; the same command without it continues")
@@ -194,8 +214,9 @@ def run_seed(
             output_dir=cfg.output_dir / method,
         )
         history = run_spo(spo_cfg)
-        rows = evaluate(pipeline.eval_config(method, policy_config(spo_cfg.output_dir / "pretrained_model")))
-        record_rates(results, method, key, rows)
+        eval_cfg = pipeline.eval_config(method, policy_config(spo_cfg.output_dir / "pretrained_model"))
+        rows = evaluate(eval_cfg)
+        record_rates(results, method, key, rows, eval_cfg.output_dir)
         record_spo(results, method, key, history)
         results["seconds"][key][method] = time.perf_counter() - t0
         save(path, results)

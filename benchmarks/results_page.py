@@ -196,6 +196,18 @@ def pixel_il(goal: float) -> Callable:
     return read
 
 
+def episodes_paired(a: str, b: str) -> Callable:
+    """SR(a) − SR(b) of each training seed over the evaluation episodes both ran from the same initial states, with
+    its 95 % CI: the evaluation's noise alone, for results of too few seeds for a CI over seeds."""
+
+    def read(r: Results) -> tuple[str, str]:
+        per_seed = r[f"{a}_minus_{b}_per_seed_episodes"]
+        parts = [f"seed {s}: {diff(d)} over {d['episodes']} paired episodes" for s, d in per_seed.items()]
+        return f"{name(a)} {evaluated_sr(r, a)}; {name(a)} − {name(b)}, {'; '.join(parts)}", "—"
+
+    return read
+
+
 def expert_success(r: Results) -> tuple[str, str]:
     """LIBERO-Object's scripted expert: ≥ 90 % on every task, on ≥ 50 training placements each."""
     rows = r["tasks"]
@@ -263,6 +275,11 @@ SECTIONS: dict[str, list[Row]] = {
             "Pixel IL ≥ 50 % (`configs/libero_object.yaml`: tasks 0-2, 50 fixed init states each)",
             ("libero_object.json",),
             when_run("il", pixel_il(0.50)),
+        ),
+        Row(
+            "R-SFT − IL (no goal of its own; the CI is the evaluation's noise, not the training seed's)",
+            ("libero_object.json",),
+            when_run("rsft", episodes_paired("rsft", "il")),
         ),
         Row(
             "CSO − IL ≥ +10 points, CI above 0, ≥ 2 seeds",

@@ -316,6 +316,21 @@ def test_committed_mw_proxy_results_resume_with_their_own_config(mw_proxy):
     assert mw_proxy.pipeline_config(ROOT / "configs" / "metaworld_demo.yaml", [n200]).rsft.successes_per_task == 200
 
 
+def test_one_seeds_methods_are_paired_on_the_episodes_both_ran_from_the_same_states(mw_proxy):
+    """With one training seed there is no CI over seeds; the evaluation's own noise is the paired difference over
+    the episodes two methods ran from the same initial states (hand count: differences 1, 0, 0, 1 over the four
+    shared episodes; s = √(1/3); half width 1.96 · s / 2)."""
+    results = {"methods": {
+        "rsft": {"outcomes_per_seed": {"0": {"t/0/0": 1, "t/0/1": 1, "t/0/2": 0, "t/0/3": 1}}},
+        "il": {"outcomes_per_seed": {"0": {"t/0/0": 0, "t/0/1": 1, "t/0/2": 0, "t/0/3": 0, "t/0/4": 1}}},
+        "cso": {},
+    }}  # fmt: skip
+    d = mw_proxy.paired_episodes(results, "rsft", "il")["0"]
+    half = 1.96 * (1 / 3) ** 0.5 / 2
+    assert d["episodes"] == 4 and d["mean"] == 0.5 and d["ci95"] == pytest.approx([0.5 - half, 0.5 + half])
+    assert mw_proxy.paired_episodes(results, "cso", "il") is None
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
