@@ -25,7 +25,13 @@ import sysconfig
 from collections.abc import Callable
 from pathlib import Path
 
-from lerobot_cso.errors import UsageError, check_config_path, interrupted_where, parse_errors_as_usage_errors
+from lerobot_cso.errors import (
+    EnvWorkerError,
+    UsageError,
+    check_config_path,
+    interrupted_where,
+    parse_errors_as_usage_errors,
+)
 from lerobot_cso.stage import POLICY_ROLES
 
 ROBOT_WORLD_FIELDS = ("robot", "teleop", "operator", "display_data")  # --world.<field>, spelt --<field> for short
@@ -154,6 +160,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f" writing {e.filename}" if e.filename else ""
         print(
             f"\nerror: lerobot-cso {name} stopped: no space left on the device{where}; free some and rerun: "
+            f"{RESTARTS.get(name, 'the work it finished is saved, and the same command resumes from it')}",
+            file=sys.stderr,
+        )
+        return 1
+    except EnvWorkerError as e:
+        print(
+            f"\nerror: lerobot-cso {name} stopped: {e} (its traceback is above); "
             f"{RESTARTS.get(name, 'the work it finished is saved, and the same command resumes from it')}",
             file=sys.stderr,
         )

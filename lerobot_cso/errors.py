@@ -27,6 +27,10 @@ class UsageError(Exception):
     """Bad user input (unknown task, impossible count, conflicting output dir, ...)."""
 
 
+class EnvWorkerError(RuntimeError):
+    """An env worker process failed (its env raised, or the process died): the worker printed its traceback."""
+
+
 @contextmanager
 def parse_errors_as_usage_errors() -> Iterator[None]:
     """Make draccus's parser raise its error as a ``UsageError`` instead of printing every option first, and its

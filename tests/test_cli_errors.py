@@ -38,7 +38,7 @@ from lerobot_cso.cso.rsft import RSFTConfig, run_rsft
 from lerobot_cso.cso.spo import SPOConfig, SPOStage
 from lerobot_cso.demos import DemosConfig
 from lerobot_cso.durable import EpisodeJournal, output_lock, replace_dir
-from lerobot_cso.errors import UsageError, check_number
+from lerobot_cso.errors import EnvWorkerError, UsageError, check_number
 from lerobot_cso.evaluation import EvalConfig
 from lerobot_cso.pipeline import Pipeline, PipelineConfig, policy_config
 from lerobot_cso.policy.configuration_cso import CSOConfig
@@ -572,6 +572,18 @@ def test_impossible_sizes_and_places_are_refused_and_a_full_disk_is_named(two_po
     assert code == 1 and err == (
         f"error: lerobot-cso spo stopped: no space left on the device writing {tmp_path}/spo/state.tmp/optimizer.pt; "
         "free some and rerun: the work it finished is saved, and the same command resumes from it"
+    )
+
+    def failed_worker(*args) -> None:
+        raise EnvWorkerError("env worker 1 failed: FileNotFoundError: [Errno 2] No such file or directory: 'x'")
+
+    monkeypatch.setattr(rollout_stage, "stage_engine", failed_worker)
+    code, _, err = run_cli(
+        ["spo", f"--policy.path={two_policies[0]}", f"--tasks={TASKS[0]}", f"--output_dir={tmp_path / 'spo2'}"], capsys
+    )
+    assert code == 1 and err == (
+        "error: lerobot-cso spo stopped: env worker 1 failed: FileNotFoundError: [Errno 2] No such file or directory: "
+        "'x' (its traceback is above); the work it finished is saved, and the same command resumes from it"
     )
 
 

@@ -3,10 +3,16 @@ one does, and decides each lane's actions on its own while the other lane's chun
 
 from __future__ import annotations
 
+import functools
+import os
+
+import gymnasium as gym
 import numpy as np
 import pytest
 
+from lerobot_cso.errors import EnvWorkerError
 from lerobot_cso.rollout.pool import Job
+from lerobot_cso.rollout.sharded import ShardedVectorEnv
 from lerobot_cso.worlds.metaworld.expert import ExpertController
 from lerobot_cso.worlds.metaworld.world import pool as metaworld_pool
 
@@ -67,3 +73,47 @@ def test_a_run_left_early_leaves_the_pool_as_good_as_new():
     for key, trace in expected.items():
         np.testing.assert_array_equal(got[key].states, trace.states)
         np.testing.assert_array_equal(got[key].actions, trace.actions)
+
+
+class FailingEnv(gym.Env):
+    """Raises on its ``fail_at``-th step; with ``die`` its process exits instead (a native crash's way)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,))
+
+    def __init__(self, fail_at: int, die: bool = False) -> None:
+        self.fail_at, self.die, self.steps = fail_at, die, 0
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps == self.fail_at:
+            if self.die:
+                os._exit(3)
+            raise FileNotFoundError(2, "No such file or directory", "/gone/init_file")
+        return np.zeros(2, np.float32), 0.0, False, False, {}
+
+
+@pytest.mark.parametrize(
+    ("die", "message"),
+    [
+        (False, "env worker 1 failed: FileNotFoundError: [Errno 2] No such file or directory: '/gone/init_file'"),
+        (True, "env worker 1 exited (exit code 3)"),
+    ],
+)
+def test_an_env_worker_that_fails_is_one_error_naming_it(die, message):
+    """A worker whose env raised (seen: LIBERO's init file gone) or whose process died surfaced as an EOFError
+    traceback of the pipe; it is now an ``EnvWorkerError`` naming the worker and its error (the CLI prints it as
+    one line, exit 1)."""
+    fns = [functools.partial(FailingEnv, 99), functools.partial(FailingEnv, 2, die)]
+    vec = ShardedVectorEnv(fns, workers=2)
+    try:
+        vec.reset(seed=[0, 1])
+        vec.step(np.zeros((2, 1), np.float32))
+        with pytest.raises(EnvWorkerError) as info:
+            vec.step(np.zeros((2, 1), np.float32))
+        assert str(info.value) == message
+    finally:
+        vec.close()

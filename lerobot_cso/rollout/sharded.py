@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -32,6 +33,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
+
+from lerobot_cso.errors import EnvWorkerError
 
 
 def _concat(parts: Sequence[Any], axis: int = 0) -> Any:
@@ -99,6 +102,13 @@ def _shard_resets(resets: Sequence[Reset], shard: np.ndarray) -> list[Reset]:
     return parts
 
 
+class _Failed:
+    """A worker's answer when its envs raised: the error, as one line."""
+
+    def __init__(self, error: BaseException) -> None:
+        self.line = f"{type(error).__name__}: {' '.join(str(error).split())}"
+
+
 def _worker(pipe: Any, env_fns: list[Callable[[], gym.Env]]) -> None:
     vec = gym.vector.SyncVectorEnv(env_fns, autoreset_mode=AutoresetMode.DISABLED)
     try:
@@ -113,6 +123,10 @@ def _worker(pipe: Any, env_fns: list[Callable[[], gym.Env]]) -> None:
                 break
     except KeyboardInterrupt:
         pass
+    except Exception as e:  # the caller raises it as one line; the traceback is printed here, where it happened
+        traceback.print_exc()
+        with contextlib.suppress(OSError):
+            pipe.send(_Failed(e))
     finally:
         vec.close()
         pipe.close()
@@ -157,7 +171,7 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
     def step(self, actions: np.ndarray):
         for pipe, shard in zip(self._pipes, self.shards, strict=True):
             pipe.send(("step", actions[shard]))
-        results = [pipe.recv() for pipe in self._pipes]
+        results = [self._answer(i) for i in range(len(self._pipes))]
         self._obs = [r[0] for r in results]
         reward, terminated, truncated = (np.concatenate([r[k] for r in results]) for k in (1, 2, 3))
         return _concat(self._obs), reward, terminated, truncated, {}
@@ -189,7 +203,7 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
         for i in shards:
             if i in self._in_flight:
                 self._in_flight.remove(i)
-                chunk, obs = self._pipes[i].recv()
+                chunk, obs = self._answer(i)
                 results[i] = chunk
                 if obs is not None:
                     self._obs[i] = obs
@@ -201,6 +215,17 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             np.concatenate([c[1] for c in chunks], 1),
             np.concatenate([c[2] for c in chunks], 1),
         )
+
+    def _answer(self, i: int) -> Any:
+        """Worker ``i``'s answer; :class:`EnvWorkerError` if its envs raised or the process is gone."""
+        try:
+            answer = self._pipes[i].recv()
+        except (EOFError, OSError):
+            self._processes[i].join(timeout=1)
+            raise EnvWorkerError(f"env worker {i} exited (exit code {self._processes[i].exitcode})") from None
+        if isinstance(answer, _Failed):
+            raise EnvWorkerError(f"env worker {i} failed: {answer.line}")
+        return answer
 
     def close_extras(self, **kwargs: Any) -> None:
         if self._closed:
@@ -257,7 +282,7 @@ class ChunkLanes:
     def drain(self) -> None:
         """Wait for every lane's work in flight and drop it (workers already gone are passed over)."""
         if isinstance(self.vec, ShardedVectorEnv):
-            with contextlib.suppress(EOFError, OSError):
+            with contextlib.suppress(EnvWorkerError):
                 self.vec.receive(range(len(self.vec.shards)))
         self._done.clear()
 
