@@ -372,11 +372,22 @@ def test_mw_proxy_stopped_records_the_evaluations_done_and_the_same_command_cont
         def __init__(self, cfg: PipelineConfig) -> None:
             self.cfg = cfg
 
+        def evaluated(self, method: str, successes: list[bool]) -> None:  # eval.json's episodes, as eval writes it
+            episodes = [{"seed": 0, "task": "task-a", "init_seed": i, "success": s} for i, s in enumerate(successes)]
+            folder = self.cfg.output_dir / "eval" / method
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / "eval.json").write_text(json.dumps({"episodes": episodes}))
+
         def run(self) -> dict:
             ran.append(self.cfg.stop_after)
             seconds = {"demos": 1.0, "il": 2.0, "eval_il": 3.0}
+            self.evaluated("il", [True, False])
             if self.cfg.stop_after == "eval_il":
                 return {"stopped_after": "eval_il", "stage_seconds": seconds, "success_rate": {"il": rows["il"]}}
+            self.evaluated("rsft", [True, True])
+            self.evaluated("cso", [True, True])
+            (self.cfg.output_dir / "rsft" / "collection.json").parent.mkdir(parents=True)
+            (self.cfg.output_dir / "rsft" / "collection.json").write_text(json.dumps({"task-a": {"kept": 1}}))
             spo = self.cfg.output_dir / "spo"
             spo.mkdir(parents=True)
             (spo / "log.jsonl").write_text(
@@ -400,5 +411,9 @@ def test_mw_proxy_stopped_records_the_evaluations_done_and_the_same_command_cont
         m: {"0": r["overall"]["mean"]} for m, r in rows.items()
     }
     assert saved["stage_seconds"]["0"]["spo"] == 4.0 and ran == ["eval_il", None]
+    assert saved["methods"]["rsft"]["outcomes_per_seed"] == {"0": {"task-a/0/0": 1, "task-a/0/1": 1}}
+    paired = saved["rsft_minus_il_per_seed_episodes"]["0"]  # differences 0, 1: s = √0.5, half width 1.96 · s / √2
+    assert (paired["mean"], paired["episodes"]) == (0.5, 2) and paired["ci95"] == pytest.approx([0.5 - 0.98, 1.48])
+    assert saved["rsft_collection"] == {"0": {"task-a": {"kept": 1}}}
     mw_proxy.run_seed(cfg, 0, tmp_path, results, path, ("il", "rsft", "cso"))  # complete: nothing runs
     assert ran == ["eval_il", None]
