@@ -44,7 +44,9 @@ def _env() -> ModuleType:
         from lerobot_cso.worlds.libero import env as libero_env
     except LiberoSetupError as e:
         raise ValueError(str(e)) from None
-    except ImportError as e:  # a LIBERO of another layout or version
+    except ImportError as e:  # a LIBERO (or a package it needs) of another layout or version; not our own modules
+        if (e.name or "").startswith("lerobot_cso"):
+            raise
         raise ValueError(f"LIBERO cannot be imported ({e}): {INSTALL_HINT}") from None
     return libero_env
 
